@@ -1,0 +1,91 @@
+"""The supervisor's error tree.
+
+Exceptions are for misuse and for faults that must stop the caller; expected
+per-frame outcomes (a frame that does not localize) are status values instead.
+
+    SupervisorError
+     +-- ConfigError            bad YAML / schema violation (file, dotted key, expectation)
+     +-- DatasetError           a recording on disk is missing, truncated or inconsistent
+     +-- ModelFormatError       a target-model file of another version or shape
+     +-- DriverUnavailable      a driver name is unknown or its optional extra is missing
+     +-- DriverError            a driver failed at run time (vendor errors are chained)
+     |    +-- CameraTimeout     no frame within the timeout (also a TimeoutError)
+     +-- RobotFault             the robot refused or cannot execute a command
+     |    +-- JointLimitError   a command would break a joint position/velocity limit
+     +-- KinematicsError        IK did not converge / pose unreachable
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class SupervisorError(Exception):
+    """Root of every error this package raises on purpose."""
+
+
+class ConfigError(SupervisorError):
+    """A configuration value is missing, unknown, of the wrong type or out of range."""
+
+    def __init__(self, file: str | Path | None, key: str, problem: str) -> None:
+        self.file = str(file) if file is not None else None
+        self.key = key
+        self.problem = problem
+        where = f"{self.file}: " if self.file else ""
+        super().__init__(f"{where}{key}: {problem}" if key else f"{where}{problem}")
+
+
+class DatasetError(SupervisorError):
+    """A dataset on disk cannot be used as it is."""
+
+    def __init__(self, file: str | Path, problem: str) -> None:
+        self.file = str(file)
+        self.problem = problem
+        super().__init__(f"{self.file}: {problem}")
+
+
+class ModelFormatError(SupervisorError):
+    """A target-model file is of another format version or is malformed."""
+
+    def __init__(self, file: str | Path, problem: str) -> None:
+        self.file = str(file)
+        self.problem = problem
+        super().__init__(f"{self.file}: {problem}")
+
+
+class DriverUnavailable(SupervisorError):
+    """The requested driver does not exist or its optional dependency is not installed."""
+
+
+class DriverError(SupervisorError):
+    """A driver failed while running."""
+
+
+class CameraTimeout(DriverError, TimeoutError):
+    """No frame arrived within the requested timeout."""
+
+    def __init__(self, timeout_s: float, detail: str = "") -> None:
+        self.timeout_s = timeout_s
+        msg = f"no camera frame within {timeout_s:.3f} s"
+        super().__init__(f"{msg}: {detail}" if detail else msg)
+
+
+class RobotFault(SupervisorError):
+    """The robot cannot execute a command or reports a fault."""
+
+
+class JointLimitError(RobotFault):
+    """A command would violate a joint position or velocity limit."""
+
+    def __init__(self, joint: int, value: float, limit: float, kind: str) -> None:
+        self.joint = joint
+        self.value = value
+        self.limit = limit
+        self.kind = kind
+        super().__init__(
+            f"joint {joint + 1} {kind} {value:.6g} violates limit {limit:.6g}"
+        )
+
+
+class KinematicsError(SupervisorError):
+    """Inverse kinematics failed or a pose is not reachable."""

@@ -1,0 +1,1 @@
+"""Motions as data: paths parameterised by one coordinate."""
