@@ -39,6 +39,18 @@ class BoardSpec:
         """(width along x, height along y) in metres."""
         return self.squares_x * self.square_m, self.squares_y * self.square_m
 
+    def to_dict(self) -> dict:
+        return {"squares_x": self.squares_x, "squares_y": self.squares_y, "square_m": self.square_m,
+                "marker_m": self.marker_m, "dictionary": self.dictionary}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> BoardSpec:
+        spec = cls(int(d["squares_x"]), int(d["squares_y"]), float(d["square_m"]), float(d["marker_m"]),
+                   str(d["dictionary"]))
+        if spec.dictionary not in _DICTIONARIES:
+            raise ValueError(f"unknown ArUco dictionary {spec.dictionary!r}; known: {', '.join(_DICTIONARIES)}")
+        return spec
+
     def board(self) -> cv2.aruco.CharucoBoard:
         d = cv2.aruco.getPredefinedDictionary(_DICTIONARIES[self.dictionary])
         return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_m, self.marker_m, d)

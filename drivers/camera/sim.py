@@ -1,0 +1,41 @@
+"""The synthetic eye-in-hand camera: renders the scene from the robot's current camera pose."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from drivers.camera.base import Camera, RawFrame
+from sim.renderer import Renderer
+from supervisor.clock import Clock
+
+
+class SimCamera(Camera):
+    """Renders what a camera at `pose_source()` (a `T_base_cam`) sees.
+
+    Frames are paced at `frame_period` on the injected clock (with a `SimClock`
+    this advances simulated time instead of sleeping). Ground truth travels in
+    `Frame.meta` (`T_cam_target_true`, `T_base_cam`), never into the pipeline.
+    """
+
+    def __init__(self, renderer: Renderer, pose_source: Callable[[], np.ndarray], clock: Clock | None = None,
+                 frame_period: float = 1.0 / 30.0, noise_seed: int = 0) -> None:
+        super().__init__(renderer.intrinsics, clock)
+        self.renderer = renderer
+        self.pose_source = pose_source
+        self.frame_period = frame_period
+        self.noise_seed = noise_seed
+        self._next_t: float | None = None
+        self._frame_index = 0
+
+    def _grab(self, timeout: float) -> RawFrame:
+        now = self.clock.now()
+        if self._next_t is not None and self._next_t > now:
+            self.clock.sleep(self._next_t - now)
+        self._next_t = self.clock.now() + self.frame_period
+        T_base_cam = np.array(self.pose_source(), dtype=float)
+        rendered = self.renderer.render(T_base_cam, frame_index=self._frame_index, noise_seed=self.noise_seed)
+        self._frame_index += 1
+        return RawFrame(rendered.image, device_seq=self._frame_index, device_time=self.clock.now(),
+                        meta={"T_base_cam": T_base_cam, "T_cam_target_true": rendered.T_cam_target})

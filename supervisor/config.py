@@ -1,0 +1,168 @@
+"""The product configuration: YAML parsed once into frozen, validated objects.
+
+Degrees, millimetres and Hz exist only in the YAML; everything here is SI.
+Errors name the file, the dotted key and what was expected.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from supervisor.camera_model import Intrinsics
+from supervisor.errors import ConfigError
+from supervisor.geometry import transform_from_config
+from supervisor.localization.settings import LocalizerSettings
+from supervisor.paths import DEFAULT_CONFIG
+from supervisor.yamlschema import Node, load_yaml_text
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    driver: str
+    urdf: Path | None
+    control_period_s: float
+    q_start: np.ndarray  # rad
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    driver: str
+    intrinsics: Intrinsics
+    T_flange_cam: np.ndarray
+    frame_period_s: float
+    timeout_s: float
+
+
+@dataclass(frozen=True)
+class ArcProtocol:
+    sweep: float  # rad
+    step: float  # rad
+    images_per_position: int
+
+    @property
+    def n_positions(self) -> int:
+        """Positions 0, step, ..., sweep (inclusive)."""
+        return int(math.floor(self.sweep / self.step + 1e-9)) + 1
+
+
+@dataclass(frozen=True)
+class LineProtocol:
+    positions: int
+    step: float  # m
+    start_offsets: tuple[float, ...]  # rad, arc angle of the line's start from the model view
+    images_per_position: int
+
+
+@dataclass(frozen=True)
+class DatasetProtocol:
+    model_baseline: float  # m, camera-x translation between the two model images
+    arc: ArcProtocol
+    line: LineProtocol
+
+
+@dataclass(frozen=True)
+class Config:
+    robot: RobotConfig
+    camera: CameraConfig
+    scene: str
+    localization: LocalizerSettings
+    dataset: DatasetProtocol
+    file: str
+    sha256: str
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Load and validate a configuration file (default: the embedded config/default.yaml)."""
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(path, "", f"cannot read configuration: {exc.strerror or exc}") from exc
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(path, "", f"not UTF-8 text: {exc}") from exc
+    root = Node(load_yaml_text(text, path), path)
+    cfg = Config(
+        robot=_robot(root.child("robot"), path),
+        camera=_camera(root.child("camera")),
+        scene=root.string("scene"),
+        localization=LocalizerSettings.from_node(root.child("localization", {})),
+        dataset=_dataset(root.child("dataset", {})),
+        file=str(path),
+        sha256=hashlib.sha256(raw).hexdigest(),
+    )
+    root.done()
+    return cfg
+
+
+def _robot(n: Node, file: Path) -> RobotConfig:
+    urdf = n.optional_string("urdf")
+    urdf_path = None
+    if urdf is not None:
+        urdf_path = (file.parent / urdf).resolve()
+        if not urdf_path.is_file():
+            raise n.error("urdf", f"file not found: {urdf_path}")
+    q = n.vector("q_start_deg", 7)
+    out = RobotConfig(
+        driver=n.string("driver"),
+        urdf=urdf_path,
+        control_period_s=1.0 / n.number("control_rate_hz", 1000.0, min=10.0, max=10000.0),
+        q_start=np.radians(q),
+    )
+    n.done()
+    return out
+
+
+def _camera(n: Node) -> CameraConfig:
+    intr = Intrinsics(
+        width=n.integer("width", min=16, max=16384),
+        height=n.integer("height", min=16, max=16384),
+        fx=n.number("fx", min=1.0, max=1e6),
+        fy=n.number("fy", min=1.0, max=1e6),
+        cx=n.number("cx", min=0.0, max=16384.0),
+        cy=n.number("cy", min=0.0, max=16384.0),
+        dist=tuple(n.vector("dist", 5, default=[0.0] * 5)),
+    )
+    if intr.cx >= intr.width or intr.cy >= intr.height:
+        raise n.error("cx", f"principal point ({intr.cx}, {intr.cy}) must lie inside the {intr.width}x{intr.height} image")
+    out = CameraConfig(
+        driver=n.string("driver"),
+        intrinsics=intr,
+        T_flange_cam=transform_from_config(n, "T_flange_cam"),
+        frame_period_s=1.0 / n.number("frame_rate_hz", 30.0, min=0.1, max=1000.0),
+        timeout_s=n.number("timeout_ms", 200.0, min=1.0, max=60000.0) / 1000.0,
+    )
+    n.done()
+    return out
+
+
+def _dataset(n: Node) -> DatasetProtocol:
+    arc = n.child("arc", {})
+    arc_p = ArcProtocol(
+        sweep=math.radians(arc.number("sweep_deg", 45.0, min=0.0, max=180.0, min_exclusive=True)),
+        step=math.radians(arc.number("step_deg", 2.25, min=0.0, max=90.0, min_exclusive=True)),
+        images_per_position=arc.integer("images_per_position", 10, min=1, max=1000),
+    )
+    arc.done()
+    line = n.child("line", {})
+    line_p = LineProtocol(
+        positions=line.integer("positions", 15, min=2, max=1000),
+        step=line.number("step_mm", 10.0, min=0.0, max=1000.0, min_exclusive=True) / 1000.0,
+        start_offsets=tuple(math.radians(v) for v in line.number_list("start_offsets_deg", [0.0, 5.0, 10.0, 15.0],
+                                                                       min=-90.0, max=90.0)),
+        images_per_position=line.integer("images_per_position", 10, min=1, max=1000),
+    )
+    line.done()
+    out = DatasetProtocol(
+        model_baseline=n.number("model_baseline_mm", 20.0, min=0.0, max=500.0, min_exclusive=True) / 1000.0,
+        arc=arc_p,
+        line=line_p,
+    )
+    n.done()
+    return out

@@ -1,0 +1,108 @@
+"""The benchmark suite: every shipped scene on arcs at three azimuths, plus lines.
+
+Like the paper's data: 45 deg arcs at azimuths 0, 90 and 270 deg (here over all
+frozen scenes in config/scenes/, at least 7) and four straight lines with start
+offsets 0/5/10/15 deg on the phantom scene. `quick` records 3 images per
+position instead of 10. Datasets are generated in parallel processes; each is
+written atomically, so an interrupted run can be resumed (complete datasets
+are kept when the suite's parameters match).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from sim.scene import list_scenes
+from supervisor.config import Config, load_config
+from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
+from supervisor.errors import DatasetError
+
+SUITE_FILE = "suite.json"
+ARC_AZIMUTHS_DEG = (0.0, 90.0, 270.0)
+LINE_SCENE = "phantom"
+
+
+@dataclass(frozen=True)
+class SuiteItem:
+    name: str
+    kind: str  # arc | line
+    scene: str
+    azimuth_deg: float = 0.0
+    start_offset_deg: float = 0.0
+
+
+def suite_items(cfg: Config) -> list[SuiteItem]:
+    items = [SuiteItem(f"arc_{scene}_az{int(az):03d}", "arc", scene, azimuth_deg=az)
+             for scene in list_scenes() for az in ARC_AZIMUTHS_DEG]
+    items += [SuiteItem(f"line_{LINE_SCENE}_off{round(math.degrees(o)):02d}", "line", LINE_SCENE,
+                        start_offset_deg=math.degrees(o)) for o in cfg.dataset.line.start_offsets]
+    return items
+
+
+def _run_item(config_file: str, out: str, item: SuiteItem, images_per_position: int | None, seed: int) -> float:
+    import cv2
+
+    cv2.setNumThreads(1)
+    cfg = load_config(config_file)
+    t0 = time.monotonic()
+    if item.kind == "arc":
+        generate_arc(cfg, out, ArcSpec(math.radians(item.azimuth_deg), images_per_position), item.scene, seed,
+                     progress=None)
+    else:
+        generate_line(cfg, out, LineSpec(math.radians(item.start_offset_deg), images_per_position), item.scene,
+                      seed, progress=None)
+    return time.monotonic() - t0
+
+
+def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int | None = None, seed: int = 0) -> Path:
+    """Generate (or complete) the benchmark suite under `out`."""
+    out = Path(out)
+    items = suite_items(cfg)
+    ipp = 3 if quick else None
+    manifest = {"config_sha256": cfg.sha256, "quick": quick, "seed": seed, "images_per_position": ipp or "config",
+                "datasets": [asdict(i) for i in items]}
+    mf = out / SUITE_FILE
+    if mf.exists():
+        old = json.loads(mf.read_text(encoding="utf-8"))
+        if old != manifest:
+            raise DatasetError(mf, "an existing suite with other parameters is here; choose another directory")
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = mf.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(manifest, indent=1), encoding="utf-8")
+    os.replace(tmp, mf)
+    todo = [i for i in items if not (out / i.name / "dataset.json").exists()]
+    log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
+    log(f"benchmark suite: {len(items)} datasets ({len(items) - len(todo)} already complete) -> {out}")
+    jobs = jobs or min(2, os.cpu_count() or 1)
+    t0 = time.monotonic()
+    done = len(items) - len(todo)
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        futures = {pool.submit(_run_item, cfg.file, str(out / i.name), i, ipp, seed): i for i in todo}
+        for fut in as_completed(futures):
+            item = futures[fut]
+            secs = fut.result()
+            done += 1
+            elapsed = time.monotonic() - t0
+            eta = elapsed / max(1, done - (len(items) - len(todo))) * (len(items) - done)
+            log(f"[{done}/{len(items)}] {item.name} done in {secs:.0f} s  (elapsed {elapsed:.0f} s, eta {eta:.0f} s)")
+    return out
+
+
+def load_suite(root: str | Path) -> list[Path]:
+    """Dataset directories of a suite (or of any directory holding datasets)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(root, "benchmark directory does not exist")
+    found = sorted(p.parent for p in root.glob("*/dataset.json"))
+    if not found:
+        raise DatasetError(root, "no datasets found (expected */dataset.json)")
+    return found
+
+

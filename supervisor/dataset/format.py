@@ -1,0 +1,296 @@
+"""On-disk dataset format (version 1).
+
+    DATASET/
+      dataset.json        metadata: format/version, kind (arc|line), units, intrinsics,
+                          T_flange_cam, scene, target (frame, board, ROI box), motion,
+                          model_images (file, t, q, T_base_flange, T_cam_target_true)
+      frames.csv          one row per sample frame (see FRAME_COLUMNS)
+      model/model_0.png   the two model-generation images (lossless, mono8)
+      model/model_1.png
+      frames/p000_i00.png sample frames: position 000, image 00 (lossless, mono8)
+
+All numbers are SI (metres, radians, seconds). Transforms are row-major 4x4.
+`s` is the path coordinate: the arc angle (rad) for arcs, the travelled distance
+(m) for lines. `t` is simulated or host-monotonic time in seconds. Camera poses
+are not stored: `T_base_cam = T_base_flange @ T_flange_cam`.
+A dataset is written to a temporary sibling directory and renamed into place
+when complete, so a reader never sees half a dataset.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from supervisor.camera_model import Intrinsics
+from supervisor.errors import DatasetError
+
+FORMAT_NAME = "panda-supervisor-dataset"
+FORMAT_VERSION = 1
+METADATA_FILE = "dataset.json"
+FRAMES_FILE = "frames.csv"
+_MAT = [f"{r}{c}" for r in range(4) for c in range(4)]
+FRAME_COLUMNS = (
+    ["index", "position", "s", "t", "file"]
+    + [f"q{j}" for j in range(1, 8)]
+    + [f"T_base_flange_{m}" for m in _MAT]
+    + [f"T_cam_target_true_{m}" for m in _MAT]
+)
+REQUIRED_METADATA = ("format", "format_version", "kind", "intrinsics", "T_flange_cam", "model_images", "motion")
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One recorded image and the robot state it was taken at."""
+
+    index: int
+    position: int
+    s: float
+    t: float
+    file: str
+    q: np.ndarray
+    T_base_flange: np.ndarray
+    T_cam_target_true: np.ndarray | None = None
+
+    def T_base_cam(self, T_flange_cam: np.ndarray) -> np.ndarray:
+        return self.T_base_flange @ T_flange_cam
+
+    def to_row(self) -> list[Any]:
+        gt = [""] * 16 if self.T_cam_target_true is None else [repr(float(v)) for v in self.T_cam_target_true.ravel()]
+        return ([self.index, self.position, repr(float(self.s)), repr(float(self.t)), self.file]
+                + [repr(float(v)) for v in self.q]
+                + [repr(float(v)) for v in self.T_base_flange.ravel()] + gt)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"index": self.index, "position": self.position, "s": self.s, "t": self.t, "file": self.file,
+                "q": [float(v) for v in self.q], "T_base_flange": self.T_base_flange.tolist(),
+                "T_cam_target_true": None if self.T_cam_target_true is None else self.T_cam_target_true.tolist()}
+
+
+def _matrix(value: Any, where: str, file: Path) -> np.ndarray:
+    try:
+        m = np.asarray(value, dtype=float).reshape(4, 4)
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(file, f"{where}: expected a 4x4 matrix") from exc
+    if not np.all(np.isfinite(m)):
+        raise DatasetError(file, f"{where}: contains NaN or inf")
+    return m
+
+
+def _record_from_json(d: dict[str, Any], where: str, file: Path) -> FrameRecord:
+    try:
+        gt = d.get("T_cam_target_true")
+        return FrameRecord(int(d.get("index", -1)), int(d.get("position", -1)), float(d.get("s", 0.0)),
+                           float(d["t"]), str(d["file"]), np.asarray(d["q"], dtype=float).reshape(7),
+                           _matrix(d["T_base_flange"], f"{where}.T_base_flange", file),
+                           None if gt is None else _matrix(gt, f"{where}.T_cam_target_true", file))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(file, f"{where}: malformed record ({exc})") from exc
+
+
+class Dataset:
+    """A recorded dataset, opened read-only and validated up front."""
+
+    def __init__(self, root: Path, meta: dict[str, Any], frames: list[FrameRecord]) -> None:
+        self.root = root
+        self.meta = meta
+        self.frames = frames
+        self.intrinsics = Intrinsics.from_dict(meta["intrinsics"])
+        self.T_flange_cam = _matrix(meta["T_flange_cam"], "T_flange_cam", root / METADATA_FILE)
+        mf = root / METADATA_FILE
+        self.model_images = [_record_from_json(d, f"model_images[{i}]", mf) for i, d in enumerate(meta["model_images"])]
+
+    # -- opening -------------------------------------------------------------
+    @classmethod
+    def open(cls, root: str | Path) -> Dataset:
+        root = Path(root)
+        mf = root / METADATA_FILE
+        if not root.is_dir():
+            raise DatasetError(root, "not a dataset directory (does not exist or is not a directory)")
+        if not mf.is_file():
+            raise DatasetError(mf, "missing dataset metadata file")
+        try:
+            meta = json.loads(mf.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise DatasetError(mf, f"unreadable metadata ({exc})") from exc
+        if not isinstance(meta, dict):
+            raise DatasetError(mf, "metadata must be a JSON object")
+        missing = [k for k in REQUIRED_METADATA if k not in meta]
+        if missing:
+            raise DatasetError(mf, f"missing metadata keys: {', '.join(missing)}")
+        if meta["format"] != FORMAT_NAME:
+            raise DatasetError(mf, f"not a {FORMAT_NAME} (format is {meta['format']!r})")
+        if meta["format_version"] != FORMAT_VERSION:
+            raise DatasetError(mf, f"format version {meta['format_version']} is not supported (expected {FORMAT_VERSION})")
+        if len(meta["model_images"]) != 2:
+            raise DatasetError(mf, f"expected 2 model images, found {len(meta['model_images'])}")
+        try:
+            Intrinsics.from_dict(meta["intrinsics"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError(mf, f"malformed intrinsics ({exc})") from exc
+        frames = cls._read_frames(root / FRAMES_FILE)
+        ds = cls(root, meta, frames)
+        for rec in [*ds.model_images, *frames]:
+            p = ds.path_of(rec)
+            if not p.is_file():
+                raise DatasetError(p, "image file listed in the dataset is missing")
+        return ds
+
+    @staticmethod
+    def _read_frames(path: Path) -> list[FrameRecord]:
+        if not path.is_file():
+            raise DatasetError(path, "missing frame index")
+        out: list[FrameRecord] = []
+        try:
+            with path.open(newline="", encoding="utf-8") as fh:
+                reader = csv.DictReader(fh)
+                if reader.fieldnames is None or list(reader.fieldnames) != FRAME_COLUMNS:
+                    raise DatasetError(path, "unexpected columns (expected the version-1 frame columns)")
+                for lineno, row in enumerate(reader, start=2):
+                    try:
+                        gt = row[FRAME_COLUMNS[-16]]
+                        rec = FrameRecord(
+                            int(row["index"]), int(row["position"]), float(row["s"]), float(row["t"]), row["file"],
+                            np.array([float(row[f"q{j}"]) for j in range(1, 8)]),
+                            np.array([float(row[f"T_base_flange_{m}"]) for m in _MAT]).reshape(4, 4),
+                            None if gt == "" else np.array([float(row[f"T_cam_target_true_{m}"]) for m in _MAT]).reshape(4, 4),
+                        )
+                    except (TypeError, ValueError) as exc:
+                        raise DatasetError(path, f"line {lineno}: malformed value ({exc})") from exc
+                    if not (np.all(np.isfinite(rec.q)) and np.all(np.isfinite(rec.T_base_flange))
+                            and math.isfinite(rec.t)):
+                        raise DatasetError(path, f"line {lineno}: non-finite value")
+                    out.append(rec)
+        except OSError as exc:
+            raise DatasetError(path, f"unreadable ({exc})") from exc
+        if not out:
+            raise DatasetError(path, "dataset has no frames")
+        return out
+
+    # -- access --------------------------------------------------------------
+    @property
+    def kind(self) -> str:
+        return str(self.meta["kind"])
+
+    @property
+    def name(self) -> str:
+        return self.root.name
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return all(f.T_cam_target_true is not None for f in self.frames)
+
+    def path_of(self, rec: FrameRecord) -> Path:
+        p = (self.root / rec.file).resolve()
+        root = self.root.resolve()
+        if root not in p.parents:
+            raise DatasetError(self.root / FRAMES_FILE, f"image path {rec.file!r} escapes the dataset root")
+        return p
+
+    def load_image(self, rec: FrameRecord) -> np.ndarray:
+        """The frame's mono8 pixels; DatasetError for unreadable/truncated/wrong-size files."""
+        path = self.path_of(rec)
+        data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
+        if data is None:
+            raise DatasetError(path, "image file is missing")
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        if img is None:
+            raise DatasetError(path, "unreadable or truncated image")
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise DatasetError(path, f"expected a mono8 image, got {img.dtype} with shape {img.shape}")
+        w, h = self.intrinsics.width, self.intrinsics.height
+        if img.shape != (h, w):
+            raise DatasetError(path, f"wrong image size {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
+        return img
+
+    def positions(self) -> Iterator[tuple[int, list[FrameRecord]]]:
+        """(position index, its frames) in recording order."""
+        groups: dict[int, list[FrameRecord]] = {}
+        for f in self.frames:
+            groups.setdefault(f.position, []).append(f)
+        yield from sorted(groups.items())
+
+
+class DatasetWriter:
+    """Writes a dataset into a temporary directory and renames it into place on `finish()`."""
+
+    def __init__(self, root: str | Path, overwrite: bool = False) -> None:
+        self.root = Path(root)
+        if self.root.exists() and not overwrite:
+            raise DatasetError(self.root, "output already exists (choose another path or remove it)")
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        self.overwrite = overwrite
+        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.partial-", dir=self.root.parent))
+        (self._tmp / "model").mkdir()
+        (self._tmp / "frames").mkdir()
+        self._frames: list[FrameRecord] = []
+        self._models: list[FrameRecord] = []
+        self._done = False
+
+    def _write_png(self, rel: str, image: np.ndarray) -> None:
+        ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:
+            raise DatasetError(self._tmp / rel, "PNG encoding failed")
+        buf.tofile(self._tmp / rel)
+
+    def add_model_image(self, image: np.ndarray, t: float, q: np.ndarray, T_base_flange: np.ndarray,
+                        T_cam_target_true: np.ndarray | None) -> None:
+        rel = f"model/model_{len(self._models)}.png"
+        self._write_png(rel, image)
+        self._models.append(FrameRecord(len(self._models), -1, 0.0, t, rel, np.asarray(q, float),
+                                        np.asarray(T_base_flange, float), T_cam_target_true))
+
+    def add_frame(self, image: np.ndarray, position: int, image_index: int, s: float, t: float, q: np.ndarray,
+                  T_base_flange: np.ndarray, T_cam_target_true: np.ndarray | None) -> None:
+        rel = f"frames/p{position:03d}_i{image_index:02d}.png"
+        self._write_png(rel, image)
+        self._frames.append(FrameRecord(len(self._frames), position, s, t, rel, np.asarray(q, float),
+                                        np.asarray(T_base_flange, float), T_cam_target_true))
+
+    def finish(self, meta: dict[str, Any]) -> Path:
+        """Write the index and metadata, then atomically move the dataset into place."""
+        if len(self._models) != 2:
+            raise DatasetError(self.root, f"a dataset needs exactly 2 model images, got {len(self._models)}")
+        with (self._tmp / FRAMES_FILE).open("w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(FRAME_COLUMNS)
+            for rec in self._frames:
+                w.writerow(rec.to_row())
+        full = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION,
+                "units": {"length": "m", "angle": "rad", "time": "s"}, **meta,
+                "model_images": [m.to_json() for m in self._models],
+                "frames_file": FRAMES_FILE, "n_frames": len(self._frames),
+                "n_positions": len({f.position for f in self._frames})}
+        (self._tmp / METADATA_FILE).write_text(json.dumps(full, indent=1), encoding="utf-8")
+        old = None
+        if self.root.exists():
+            old = self.root.with_name(f".{self.root.name}.old-{os.getpid()}")
+            os.replace(self.root, old)
+        os.replace(self._tmp, self.root)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        self._done = True
+        return self.root
+
+    def abort(self) -> None:
+        if not self._done:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._done = True
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(self, exc_type, *_: object) -> None:
+        if exc_type is not None or not self._done:
+            self.abort()
