@@ -83,8 +83,9 @@ class BoardDetector:
         params.distCoeffs = intrinsics.dist_coeffs
         self._detector = cv2.aruco.CharucoDetector(self._board, params)
 
-    def detect(self, image: np.ndarray) -> BoardPose | None:
-        """The board's pose in the camera frame, or None when too few corners are seen."""
+    def correspondences(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(board points Nx3 [m, board frame], image points Nx2 [px]) of the detected ChArUco
+        corners, or None when fewer than `min_corners` are seen."""
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         corners, ids, _, _ = self._detector.detectBoard(image)
@@ -93,6 +94,14 @@ class BoardDetector:
         obj, img = self._board.matchImagePoints(corners, ids)
         if obj is None or len(obj) < self.min_corners:
             return None
+        return obj.reshape(-1, 3).astype(np.float64), img.reshape(-1, 2).astype(np.float64)
+
+    def detect(self, image: np.ndarray) -> BoardPose | None:
+        """The board's pose in the camera frame, or None when too few corners are seen."""
+        found = self.correspondences(image)
+        if found is None:
+            return None
+        obj, img = found
         K, dist = self.intrinsics.K, self.intrinsics.dist_coeffs
         ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
         if not ok:

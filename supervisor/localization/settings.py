@@ -1,0 +1,131 @@
+"""Localizer and target-model settings: the `localization:` YAML section, parsed once.
+
+Every field is validated at load time (`LocalizerSettings.from_node`); errors carry
+the file and the dotted key. Pixel units stay pixels; angles are radians and
+distances metres in code (the YAML uses `_deg` / `_mm` suffixes for those).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from supervisor.yamlschema import Node
+
+MATCHERS = ("flann", "bf")
+PNP_METHODS = ("usac_magsac", "epnp", "p3p", "ap3p", "iterative")
+ROI_MODES = ("predicted", "off")
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """How the target model is built from the two model images (offline, accuracy over speed)."""
+
+    ratio: float = 0.7  # Lowe ratio for image-0 <-> image-1 matches (mutual matches only)
+    max_reprojection_px: float = 1.0  # reject a triangulated point above this error in either view
+    min_parallax: float = math.radians(0.5)  # rad, angle between the two viewing rays
+    min_depth: float = 0.05  # m, along camera-0 z
+    max_depth: float = 3.0  # m
+    min_points: int = 20  # fewer surviving points -> ModelBuildError
+
+    @classmethod
+    def from_node(cls, node: Node) -> ModelSettings:
+        d = cls()
+        out = cls(
+            ratio=node.number("ratio", d.ratio, min=0.0, max=1.0, min_exclusive=True),
+            max_reprojection_px=node.number("max_reprojection_px", d.max_reprojection_px, min=0.0, max=100.0,
+                                            min_exclusive=True),
+            min_parallax=math.radians(node.number("min_parallax_deg", math.degrees(d.min_parallax), min=0.0,
+                                                  max=90.0)),
+            min_depth=node.number("min_depth_mm", d.min_depth * 1000.0, min=0.0, min_exclusive=True) / 1000.0,
+            max_depth=node.number("max_depth_mm", d.max_depth * 1000.0, min=0.0, min_exclusive=True) / 1000.0,
+            min_points=node.integer("min_points", d.min_points, min=4, max=1_000_000),
+        )
+        if out.max_depth <= out.min_depth:
+            raise node.error("max_depth_mm", f"must be > min_depth_mm ({out.min_depth * 1000:g}), "
+                                             f"got {out.max_depth * 1000:g}")
+        node.done()
+        return out
+
+
+@dataclass(frozen=True)
+class LocalizerSettings:
+    """Per-frame localization (CLAHE -> SIFT -> ratio-test matching -> PnP-RANSAC) and model building."""
+
+    clahe_clip: float = 2.0
+    clahe_tile: int = 8  # tiles per image side
+    sift_nfeatures: int = 0  # 0 = keep all
+    sift_octave_layers: int = 3
+    sift_contrast_threshold: float = 0.04
+    sift_edge_threshold: float = 10.0
+    sift_sigma: float = 1.6
+    ratio: float = 0.8  # Lowe ratio test, frame -> model
+    matcher: str = "flann"  # flann | bf
+    flann_trees: int = 4
+    flann_checks: int = 64
+    pnp: str = "usac_magsac"  # usac_magsac | epnp | p3p | ap3p | iterative
+    ransac_reprojection_px: float = 2.0
+    ransac_iterations: int = 1000
+    ransac_confidence: float = 0.999
+    min_inliers: int = 6  # below: LOST (RANSAC fits only false matches)
+    roi: str = "predicted"  # predicted | off
+    roi_margin_px: int = 48
+    threads: int = 0  # cv2.setNumThreads at Localizer construction; 0 = leave OpenCV's setting
+    model: ModelSettings = field(default_factory=ModelSettings)
+
+    def __post_init__(self) -> None:
+        # Direct construction (tests, dataclasses.replace) gets the same checks as YAML.
+        if self.matcher not in MATCHERS:
+            raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
+        if self.pnp not in PNP_METHODS:
+            raise ValueError(f"pnp must be one of {PNP_METHODS}, got {self.pnp!r}")
+        if self.roi not in ROI_MODES:
+            raise ValueError(f"roi must be one of {ROI_MODES}, got {self.roi!r}")
+        if not 0.0 < self.ratio <= 1.0:
+            raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
+        if self.min_inliers < 4:
+            raise ValueError(f"min_inliers must be >= 4, got {self.min_inliers}")
+
+    @classmethod
+    def from_node(cls, node: Node) -> LocalizerSettings:
+        """Parse and validate the `localization:` section (absent keys take the defaults)."""
+        d = cls()
+        out = cls(
+            clahe_clip=node.number("clahe_clip", d.clahe_clip, min=0.0, max=1000.0),
+            clahe_tile=node.integer("clahe_tile", d.clahe_tile, min=1, max=256),
+            sift_nfeatures=node.integer("sift_nfeatures", d.sift_nfeatures, min=0, max=1_000_000),
+            sift_octave_layers=node.integer("sift_octave_layers", d.sift_octave_layers, min=1, max=10),
+            sift_contrast_threshold=node.number("sift_contrast_threshold", d.sift_contrast_threshold, min=0.0,
+                                                max=1.0),
+            sift_edge_threshold=node.number("sift_edge_threshold", d.sift_edge_threshold, min=1.0, max=1000.0),
+            sift_sigma=node.number("sift_sigma", d.sift_sigma, min=0.1, max=10.0),
+            ratio=node.number("ratio", d.ratio, min=0.0, max=1.0, min_exclusive=True),
+            matcher=node.string("matcher", d.matcher, choices=MATCHERS),
+            flann_trees=node.integer("flann_trees", d.flann_trees, min=1, max=64),
+            flann_checks=node.integer("flann_checks", d.flann_checks, min=1, max=100_000),
+            pnp=node.string("pnp", d.pnp, choices=PNP_METHODS),
+            ransac_reprojection_px=node.number("ransac_reprojection_px", d.ransac_reprojection_px, min=0.0,
+                                               max=100.0, min_exclusive=True),
+            ransac_iterations=node.integer("ransac_iterations", d.ransac_iterations, min=1, max=1_000_000),
+            ransac_confidence=node.number("ransac_confidence", d.ransac_confidence, min=0.0, max=1.0,
+                                          min_exclusive=True),
+            min_inliers=node.integer("min_inliers", d.min_inliers, min=4, max=100_000),
+            roi=node.string("roi", d.roi, choices=ROI_MODES),
+            roi_margin_px=node.integer("roi_margin_px", d.roi_margin_px, min=0, max=10_000),
+            threads=node.integer("threads", d.threads, min=0, max=256),
+            model=ModelSettings.from_node(node.child("model", {})),
+        )
+        node.done()
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able values (SI units) for metadata and reports."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> LocalizerSettings:
+        """Inverse of `to_dict` (used when reading a model's metadata)."""
+        d = dict(d)
+        model = ModelSettings(**d.pop("model", {}))
+        return cls(**d, model=model)
