@@ -82,7 +82,12 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
     prev: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target) of the last success
     for k, rec in enumerate(ds.frames):
         T_base_cam = rec.T_base_cam(ds.T_flange_cam)
-        hint = predict_target_pose(T_base_cam, prev[0], prev[1]) if prev is not None else None
+        # Predicted target pose for the ROI: from the last success and the robot's motion since,
+        # or, before any success, from where the model was built (the target is static).
+        if prev is not None:
+            hint = predict_target_pose(T_base_cam, prev[0], prev[1])
+        else:
+            hint = predict_target_pose(T_base_cam, model.T_base_cam0, model.T_cam0_target)
         res = loc.localize(ds.load_image(rec), hint)
         t_err = r_err = float("nan")
         if res.status is Status.OK:
