@@ -24,16 +24,19 @@ def _config(args: argparse.Namespace):
 
 
 def cmd_dataset_generate(args: argparse.Namespace) -> int:
-    from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
+    from sim.scene import load_scene
 
     cfg = _config(args)
+    scene = load_scene(args.scene or cfg.scene)  # an unknown scene fails here, before any robot code loads
+    from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
+
     t0 = time.monotonic()
     if args.motion == "arc":
         out = generate_arc(cfg, args.out, ArcSpec(math.radians(args.azimuth), args.images_per_position),
-                           args.scene, args.seed, overwrite=args.force)
+                           scene, args.seed, overwrite=args.force)
     else:
         out = generate_line(cfg, args.out, LineSpec(math.radians(args.offset), args.images_per_position),
-                            args.scene, args.seed, overwrite=args.force)
+                            scene, args.seed, overwrite=args.force)
     print(f"wrote dataset {out} in {time.monotonic() - t0:.1f} s")
     return 0
 

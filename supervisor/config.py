@@ -16,7 +16,10 @@ import numpy as np
 from supervisor.camera_model import Intrinsics
 from supervisor.errors import ConfigError
 from supervisor.geometry import transform_from_config
+from drivers.camera import CAMERAS
 from supervisor.localization.settings import LocalizerSettings
+
+ROBOT_DRIVERS = ("sim", "franka")  # drivers/robot registry names
 from supervisor.paths import DEFAULT_CONFIG
 from supervisor.yamlschema import Node, load_yaml_text
 
@@ -110,7 +113,7 @@ def _robot(n: Node, file: Path) -> RobotConfig:
             raise n.error("urdf", f"file not found: {urdf_path}")
     q = n.vector("q_start_deg", 7)
     out = RobotConfig(
-        driver=n.string("driver"),
+        driver=n.string("driver", choices=ROBOT_DRIVERS),
         urdf=urdf_path,
         control_period_s=1.0 / n.number("control_rate_hz", 1000.0, min=10.0, max=10000.0),
         q_start=np.radians(q),
@@ -132,7 +135,7 @@ def _camera(n: Node) -> CameraConfig:
     if intr.cx >= intr.width or intr.cy >= intr.height:
         raise n.error("cx", f"principal point ({intr.cx}, {intr.cy}) must lie inside the {intr.width}x{intr.height} image")
     out = CameraConfig(
-        driver=n.string("driver"),
+        driver=n.string("driver", choices=tuple(CAMERAS.names())),
         intrinsics=intr,
         T_flange_cam=transform_from_config(n, "T_flange_cam"),
         frame_period_s=1.0 / n.number("frame_rate_hz", 30.0, min=0.1, max=1000.0),

@@ -99,6 +99,30 @@ def _record_from_json(d: dict[str, Any], where: str, file: Path) -> FrameRecord:
         raise DatasetError(file, f"{where}: malformed record ({exc})") from exc
 
 
+def _check_target(target: Any, mf: Path) -> None:
+    """`target` is optional (real recordings may lack it), but when present it must be well-formed."""
+    if target is None:
+        return
+    if not isinstance(target, dict):
+        raise DatasetError(mf, f"target: expected an object, got {type(target).__name__}")
+    from supervisor.localization.fiducial import BoardSpec
+
+    if target.get("board") is not None:
+        try:
+            BoardSpec.from_dict(target["board"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError(mf, f"target.board: malformed ChArUco board ({exc!r})") from exc
+    rb = target.get("roi_box")
+    if rb is not None:
+        try:
+            T = np.asarray(rb["T_target_box"], float)
+            half = np.asarray(rb["half_extents"], float)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError(mf, f"target.roi_box: malformed ({exc!r})") from exc
+        if T.shape != (4, 4) or half.shape != (3,) or not (np.all(np.isfinite(T)) and np.all(half > 0)):
+            raise DatasetError(mf, "target.roi_box: expected T_target_box 4x4 and 3 positive half_extents")
+
+
 class Dataset:
     """A recorded dataset, opened read-only and validated up front."""
 
@@ -133,8 +157,9 @@ class Dataset:
             raise DatasetError(mf, f"not a {FORMAT_NAME} (format is {meta['format']!r})")
         if meta["format_version"] != FORMAT_VERSION:
             raise DatasetError(mf, f"format version {meta['format_version']} is not supported (expected {FORMAT_VERSION})")
-        if len(meta["model_images"]) != 2:
-            raise DatasetError(mf, f"expected 2 model images, found {len(meta['model_images'])}")
+        if not isinstance(meta["model_images"], list) or len(meta["model_images"]) != 2:
+            raise DatasetError(mf, "model_images: expected a list of 2 model-image records")
+        _check_target(meta.get("target"), mf)
         try:
             Intrinsics.from_dict(meta["intrinsics"])
         except (KeyError, TypeError, ValueError) as exc:

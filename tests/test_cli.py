@@ -1,0 +1,315 @@
+"""The `supervisor` CLI, run in-process: localize/model build outputs, and bad input.
+
+Bad input must give exit status 2 and one `error:` line on stderr that names the
+file and the problem, with no traceback and nothing half-written. The dataset
+is a small rendered arc (tests/dataset_fixture.py): 4 positions x 2 images.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from supervisor.cli import main
+from supervisor.paths import DEFAULT_CONFIG
+from dataset_fixture import write_arc_dataset
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+REQUIRED_COLUMNS = ["position", "theta_deg", "x_mm", "n_inliers", "t_err_mm", "r_err_deg", "status", "latency_ms"]
+BAD_FRAME = "frames/p003_i01.png"  # the last frame: everything before it has been localized
+
+
+# ---------------------------------------------------------------------------- helpers
+
+def run(argv: list[str], capfd: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    """Run the CLI in-process; (exit status, stdout, stderr) incl. native (fd-level) output."""
+    capfd.readouterr()
+    rc = main([str(a) for a in argv])
+    out, err = capfd.readouterr()
+    return rc, out, err
+
+
+def assert_usage_error(rc: int, err: str, *needles: str) -> str:
+    """Exit 2, no traceback, exactly one `error:` line containing every needle; returns that line."""
+    assert rc == 2, f"exit status {rc}, stderr:\n{err}"
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1, f"expected one error line, stderr:\n{err}"
+    for n in needles:
+        assert n in lines[0], f"{n!r} not in {lines[0]!r}"
+    return lines[0]
+
+
+def assert_no_outputs(out: Path) -> None:
+    """Neither result file nor any temporary file was left in OUT."""
+    if out.exists():
+        assert not (out / "localization.csv").exists()
+        assert not (out / "localization.png").exists()
+        assert sorted(p.name for p in out.iterdir()) == [], "leftover files in the output directory"
+
+
+def read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        rows = list(reader)
+        return list(reader.fieldnames or []), rows
+
+
+def copy_dataset(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def mean_n_at_zero(rows: list[dict[str, str]]) -> float:
+    n = [int(r["n_inliers"]) for r in rows if abs(float(r["theta_deg"])) < 1e-6]
+    assert n, "no frame at 0 deg"
+    return float(np.mean(n))
+
+
+# ---------------------------------------------------------------------------- fixtures
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_arc_dataset(tmp_path_factory.mktemp("cli") / "arc_phantom")
+
+
+@pytest.fixture(scope="module")
+def localized(dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[int, Path, str]:
+    """One `localize DATASET -o OUT` run shared by the output checks."""
+    out = tmp_path_factory.mktemp("loc") / "out"
+    rc = main(["localize", str(dataset), "-o", str(out)])
+    return rc, out, str(dataset)
+
+
+@pytest.fixture(scope="module")
+def model_file(dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("model") / "m.npz"
+    assert main(["model", "build", str(dataset), "-o", str(path)]) == 0
+    return path
+
+
+# ---------------------------------------------------------------------------- good input
+
+def test_localize_writes_csv_and_plot(localized: tuple[int, Path, str]) -> None:
+    rc, out, _ = localized
+    assert rc == 0
+    assert sorted(p.name for p in out.iterdir()) == ["localization.csv", "localization.png"]  # no temp files
+    header, rows = read_csv(out / "localization.csv")
+    assert [c for c in REQUIRED_COLUMNS if c not in header] == []
+    assert len(rows) == 8
+    assert [int(r["position"]) for r in rows] == [0, 0, 1, 1, 2, 2, 3, 3]
+    assert [round(float(r["theta_deg"]), 2) for r in rows[::2]] == [0.0, 5.0, 10.0, 15.0]
+    zero = rows[:2]
+    for r in zero:
+        assert r["status"] == "OK"
+        assert int(r["n_inliers"]) > 100
+        assert float(r["t_err_mm"]) < 2.0
+        assert float(r["r_err_deg"]) < 1.0
+        assert float(r["x_mm"]) == pytest.approx(0.0, abs=1e-3)
+        assert 0.0 < float(r["latency_ms"]) < 5000.0
+    # x_mm is the camera travel from the first frame: it grows along the arc.
+    xs = [float(r["x_mm"]) for r in rows[::2]]
+    assert xs == sorted(xs) and xs[-1] > 10.0
+    assert (out / "localization.png").read_bytes()[:8] == PNG_SIGNATURE
+
+
+def test_model_build_then_localize_with_model(localized: tuple[int, Path, str], model_file: Path,
+                                              tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    rc0, out0, dataset = localized
+    assert rc0 == 0
+    assert model_file.read_bytes()[:2] == b"PK"  # an npz (zip) archive
+    assert [p.name for p in model_file.parent.iterdir()] == ["m.npz"]  # no temp file left by the save
+    out = tmp_path / "out"
+    rc, stdout, err = run(["localize", dataset, "--model", model_file, "-o", out], capfd)
+    assert rc == 0, err
+    assert "built target model" not in err  # the given model was used, not rebuilt
+    _, rows = read_csv(out / "localization.csv")
+    _, rows0 = read_csv(out0 / "localization.csv")
+    assert len(rows) == len(rows0) == 8
+    n, n0 = mean_n_at_zero(rows), mean_n_at_zero(rows0)
+    assert n > 100
+    assert abs(n - n0) <= 0.10 * n0, (n, n0)
+
+
+# ---------------------------------------------------------------------------- bad images
+
+def _missing(p: Path) -> None:
+    p.unlink()
+
+
+def _truncated(p: Path) -> None:
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 3])
+
+
+def _garbage(p: Path) -> None:
+    p.write_bytes(np.random.default_rng(1).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+
+
+def _wrong_size(p: Path) -> None:
+    assert cv2.imwrite(str(p), np.full((480, 640), 128, np.uint8))
+
+
+@pytest.mark.parametrize(("damage", "problem"), [
+    (_missing, "missing"),
+    (_truncated, "unreadable or truncated"),
+    (_garbage, "unreadable or truncated"),
+    (_wrong_size, "wrong image size 640x480, expected 1280x1024"),
+], ids=["missing", "truncated", "garbage", "wrong-size"])
+def test_localize_bad_frame_image(dataset: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str],
+                                  damage, problem: str, model_file: Path) -> None:
+    ds = copy_dataset(dataset, tmp_path / "ds")
+    damage(ds / BAD_FRAME)
+    out = tmp_path / "out"
+    rc, _, err = run(["localize", ds, "--model", model_file, "-o", out], capfd)
+    assert_usage_error(rc, err, str(ds / BAD_FRAME), problem)
+    assert_no_outputs(out)
+
+
+def test_model_build_truncated_model_image(dataset: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    ds = copy_dataset(dataset, tmp_path / "ds")
+    _truncated(ds / "model" / "model_0.png")
+    out = tmp_path / "models"
+    out.mkdir()
+    rc, _, err = run(["model", "build", ds, "-o", out / "m.npz"], capfd)
+    assert_usage_error(rc, err, str(ds / "model" / "model_0.png"), "unreadable or truncated")
+    assert list(out.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------- bad model files
+
+def test_localize_model_of_another_version(dataset: Path, model_file: Path, tmp_path: Path,
+                                           capfd: pytest.CaptureFixture[str]) -> None:
+    with np.load(model_file, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["format_version"] = np.array(99, np.int64)
+    bad = tmp_path / "v99.npz"
+    np.savez(bad, **arrays)
+    out = tmp_path / "out"
+    rc, _, err = run(["localize", dataset, "--model", bad, "-o", out], capfd)
+    assert_usage_error(rc, err, str(bad), "format version 99 is not supported")
+    assert_no_outputs(out)
+
+
+def test_localize_model_garbage_bytes(dataset: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "garbage.npz"
+    bad.write_bytes(b"this is not a zip archive\n" * 20)
+    out = tmp_path / "out"
+    rc, _, err = run(["localize", dataset, "--model", bad, "-o", out], capfd)
+    assert_usage_error(rc, err, str(bad), "not a readable .npz model file")
+    assert_no_outputs(out)
+
+
+# ---------------------------------------------------------------------------- bad dataset metadata
+
+def _edit_meta(ds: Path, edit) -> None:
+    mf = ds / "dataset.json"
+    meta = json.loads(mf.read_text())
+    edit(meta)
+    mf.write_text(json.dumps(meta))
+
+
+
+
+@pytest.mark.parametrize(("edit", "problem"), [
+    (lambda m: m.pop("intrinsics"), "missing metadata keys: intrinsics"),
+    (lambda m: m.pop("model_images"), "missing metadata keys: model_images"),
+    (lambda m: m.__setitem__("intrinsics", {"width": 1280}), "malformed intrinsics"),
+    (lambda m: m.__setitem__("format_version", 2), "format version 2 is not supported"),
+    (lambda m: m["target"].pop("roi_box"), "target.roi_box is required"),
+    (lambda m: m.__setitem__("model_images", 5), "model_images"),
+    (lambda m: m.__setitem__("target", "board"), "target"),
+    (lambda m: m["target"].__setitem__("board", {"rows": 3}), "target.board"),
+], ids=["no-intrinsics", "no-model-images", "bad-intrinsics", "version-2", "no-roi-box",
+        "model-images-not-list", "target-not-object", "board-malformed"])
+def test_localize_bad_metadata(dataset: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str],
+                               edit, problem: str) -> None:
+    ds = copy_dataset(dataset, tmp_path / "ds")
+    _edit_meta(ds, edit)
+    out = tmp_path / "out"
+    rc, _, err = run(["localize", ds, "-o", out], capfd)
+    assert_usage_error(rc, err, str(ds / "dataset.json"), problem)
+    assert_no_outputs(out)
+
+
+@pytest.mark.parametrize(("text", "problem"), [
+    ("{not json", "unreadable metadata"),
+    ("[1, 2, 3]", "metadata must be a JSON object"),
+    ("", "unreadable metadata"),
+], ids=["not-json", "not-object", "empty"])
+def test_localize_metadata_not_json(dataset: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str],
+                                    text: str, problem: str) -> None:
+    ds = copy_dataset(dataset, tmp_path / "ds")
+    (ds / "dataset.json").write_text(text)
+    out = tmp_path / "out"
+    rc, _, err = run(["localize", ds, "-o", out], capfd)
+    assert_usage_error(rc, err, str(ds / "dataset.json"), problem)
+    assert_no_outputs(out)
+
+
+def test_localize_nonexistent_dataset(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    ds, out = tmp_path / "no_such_dataset", tmp_path / "out"
+    rc, _, err = run(["localize", ds, "-o", out], capfd)
+    assert_usage_error(rc, err, str(ds), "not a dataset directory")
+    assert not out.exists()
+    rc, _, err = run(["model", "build", ds, "-o", tmp_path / "m.npz"], capfd)
+    assert_usage_error(rc, err, str(ds), "not a dataset directory")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------- unknown names
+
+def test_dataset_generate_unknown_scene(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "ds"
+    capfd.readouterr()
+    rc = main(["dataset", "generate", str(out), "--scene", "nope", "--motion", "arc"])
+    _, err = capfd.readouterr()
+    assert_usage_error(rc, err, "unknown scene 'nope'", "phantom")  # lists the available scenes
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_dataset_generate_rejects_zero_images_per_position(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    rc, _, err = run(["dataset", "generate", tmp_path / "ds", "--motion", "arc", "--images-per-position", "0"], capfd)
+    assert_usage_error(rc, err, "--images-per-position must be >= 1")
+    assert not (tmp_path / "ds").exists()
+
+
+def _config_with_driver(tmp_path: Path, section: str, name: str) -> Path:
+    """A copy of config/default.yaml with `<section>.driver` replaced."""
+    lines = DEFAULT_CONFIG.read_text().splitlines()
+    start = lines.index(f"{section}:")
+    for i in range(start + 1, len(lines)):
+        if lines[i].lstrip().startswith("driver:"):
+            lines[i] = f"  driver: {name}"
+            break
+    else:
+        raise AssertionError(f"no {section}.driver in {DEFAULT_CONFIG}")
+    path = tmp_path / f"bad_{section}.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("section", ["camera", "robot"])
+def test_unknown_driver_in_config(section: str, dataset: Path, model_file: Path, tmp_path: Path,
+                                  capfd: pytest.CaptureFixture[str]) -> None:
+    cfg = _config_with_driver(tmp_path, section, "nope")
+    out = tmp_path / "out"
+    rc, _, err = run(["--config", cfg, "localize", dataset, "--model", model_file, "-o", out], capfd)
+    assert_usage_error(rc, err, str(cfg), f"{section}.driver", "nope")
+    assert_no_outputs(out)
+
+
+def test_config_copy_with_sim_drivers_is_accepted(dataset: Path, model_file: Path, tmp_path: Path,
+                                                  capfd: pytest.CaptureFixture[str]) -> None:
+    """Control for the driver test: the same rewrite with a valid name works."""
+    cfg = _config_with_driver(tmp_path, "camera", "sim")
+    out = tmp_path / "out"
+    rc, _, err = run(["--config", cfg, "localize", dataset, "--model", model_file, "-o", out], capfd)
+    assert rc == 0, err
+    assert (out / "localization.csv").is_file()
