@@ -17,9 +17,9 @@ from supervisor.camera_model import Intrinsics
 from supervisor.errors import ConfigError
 from supervisor.geometry import transform_from_config
 from drivers.camera import CAMERAS
+from drivers.robot import ROBOTS
 from supervisor.localization.settings import LocalizerSettings
 
-ROBOT_DRIVERS = ("sim", "franka")  # drivers/robot registry names
 from supervisor.paths import DEFAULT_CONFIG
 from supervisor.yamlschema import Node, load_yaml_text
 
@@ -113,7 +113,7 @@ def _robot(n: Node, file: Path) -> RobotConfig:
             raise n.error("urdf", f"file not found: {urdf_path}")
     q = n.vector("q_start_deg", 7)
     out = RobotConfig(
-        driver=n.string("driver", choices=ROBOT_DRIVERS),
+        driver=n.string("driver", choices=tuple(ROBOTS.names())),
         urdf=urdf_path,
         control_period_s=1.0 / n.number("control_rate_hz", 1000.0, min=10.0, max=10000.0),
         q_start=np.radians(q),

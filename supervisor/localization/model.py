@@ -224,6 +224,45 @@ def _project(points_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
     return proj.reshape(-1, 2)
 
 
+def refine_correspondences(img0: np.ndarray, img1: np.ndarray, px0: np.ndarray, px1: np.ndarray,
+                           half: int = 7, search: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel image-1 positions of the points `px0` of image 0, searched around `px1`.
+
+    The (2*half+1)^2 patch around each image-0 point is matched by normalised
+    cross-correlation inside +-`search` px of its SIFT match; the peak is refined
+    by a parabola in x and y. Returns (refined px1, peak score); points whose patch
+    or search window leaves the image, or whose peak lies on the window edge, get
+    score -1 (dropped by the caller).
+    """
+    h, w = img0.shape
+    a = img0.astype(np.float32)
+    b = img1.astype(np.float32)
+    out = px1.copy()
+    score = np.full(len(px0), -1.0)
+    r = half + search
+    for k, ((x0, y0), (x1, y1)) in enumerate(zip(px0, px1)):
+        c0, r0 = int(round(x0)), int(round(y0))
+        c1, r1 = int(round(x1)), int(round(y1))
+        if not (half <= c0 < w - half and half <= r0 < h - half and r <= c1 < w - r and r <= r1 < h - r):
+            continue
+        tpl = a[r0 - half:r0 + half + 1, c0 - half:c0 + half + 1]
+        win = b[r1 - r:r1 + r + 1, c1 - r:c1 + r + 1]
+        res = cv2.matchTemplate(win, tpl, cv2.TM_CCOEFF_NORMED)
+        _, peak, _, (dx, dy) = cv2.minMaxLoc(res)
+        if not (0 < dx < 2 * search and 0 < dy < 2 * search) or not np.isfinite(peak):
+            continue
+        def vertex(m: float, c: float, p: float) -> float:
+            den = m - 2.0 * c + p
+            return 0.0 if den >= 0 else 0.5 * (m - p) / den
+        fx = vertex(res[dy, dx - 1], res[dy, dx], res[dy, dx + 1])
+        fy = vertex(res[dy - 1, dx], res[dy, dx], res[dy + 1, dx])
+        # The template centre (c0, r0) lands at (c1 - search + dx + fx, r1 - search + dy + fy);
+        # px0's sub-pixel offset from that centre carries over (locally a translation).
+        out[k] = (c1 - search + dx + fx + (x0 - c0), r1 - search + dy + fy + (y0 - r0))
+        score[k] = peak
+    return out, score
+
+
 def board_pose_two_views(detector: BoardDetector, img0: np.ndarray, img1: np.ndarray,
                          T_cam1_cam0: np.ndarray) -> tuple[np.ndarray, int, float] | None:
     """`T_cam0_board` from ChArUco corners seen in either or both model images.
@@ -294,14 +333,21 @@ def build_model(img0: np.ndarray, img1: np.ndarray, T_base_cam0: np.ndarray, T_b
                               "between the two model images to triangulate")
 
     fe = FeatureExtractor(settings)
-    kp0, d0 = fe.extract(img0)
-    kp1, d1 = fe.extract(img1)
+    eq0 = fe.equalize(img0).copy()  # the extractor reuses its CLAHE buffer
+    kp0, d0 = fe.detect(eq0)
+    eq1 = fe.equalize(img1).copy()
+    kp1, d1 = fe.detect(eq1)
     i0, i1 = mutual_matches(d0, d1, ms.ratio)
     stats: dict[str, Any] = {"keypoints": [int(len(kp0)), int(len(kp1))], "matches": int(len(i0))}
     if len(i0) < ms.min_points:
         raise ModelBuildError(f"only {len(i0)} feature matches between the two model images "
                               f"(need at least {ms.min_points})")
     px0, px1 = kp0[i0].astype(np.float64), kp1[i1].astype(np.float64)
+    if ms.subpixel_refine:
+        px1, score = refine_correspondences(eq0, eq1, px0, px1)
+        good_ncc = score >= ms.refine_min_score
+        stats["rejected_refine"] = int(np.sum(~good_ncc))
+        i0, i1, px0, px1 = i0[good_ncc], i1[good_ncc], px0[good_ncc], px1[good_ncc]
 
     # Triangulate in normalised coordinates so lens distortion is handled once.
     K, dist = intrinsics.K, intrinsics.dist_coeffs
