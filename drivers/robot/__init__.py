@@ -1,0 +1,10 @@
+"""Robot backends, selected by name from configuration (imported lazily)."""
+
+from supervisor.registry import DriverEntry, DriverRegistry
+
+ROBOTS = DriverRegistry(
+    "robot",
+    {
+        "sim": DriverEntry("drivers.robot.sim", "SimRobotDriver", doc="kinematic Panda in simulated time"),
+    },
+)

@@ -1,0 +1,313 @@
+"""Kinematic model of the Franka Emika Panda: forward kinematics, Jacobians, IK.
+
+The model comes from example-robot-data's `panda.urdf` (kinematics only, no
+meshes), with the two finger joints locked, leaving the 7 arm joints. As in
+Pinocchio, the model is immutable and shared; each `PandaKinematics` owns its
+own scratch `Data`, so use one instance per thread (`clone()` makes another
+that shares the model).
+
+Frames: `flange` is `panda_link8` (the flange of joint 7, 0.107 m along its
+axis); `camera` and `tcp` are fixed in the flange frame by `T_flange_cam`
+(hand-eye calibration) and `T_flange_tcp`. Jacobians are 6x7 in Pinocchio's
+LOCAL_WORLD_ALIGNED convention: rows 0-2 are the linear velocity of the frame's
+origin and rows 3-5 the angular velocity, both in base-frame axes.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import site
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from supervisor.errors import DriverError, DriverUnavailable, KinematicsError
+from supervisor.geometry import validate_T
+
+N_JOINTS = 7
+FLANGE_LINK = "panda_link8"
+FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
+ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, N_JOINTS + 1))
+URDF_RELPATH = Path("cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf")
+FRAMES = ("flange", "camera", "tcp")
+
+# Franka Emika Panda datasheet limits (rad, rad/s, rad/s^2, rad/s^3).
+DATASHEET_Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
+DATASHEET_Q_MAX = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
+DATASHEET_DQ_MAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
+DATASHEET_DDQ_MAX = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
+DATASHEET_DDDQ_MAX = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
+
+# libfranka's "ready" posture: flange about 0.31 m in front of the base, 0.59 m up, pointing down.
+Q_READY = np.array([0.0, -math.pi / 4, 0.0, -3 * math.pi / 4, 0.0, math.pi / 2, math.pi / 4])
+
+
+def find_panda_urdf() -> Path:
+    """Locate example-robot-data's panda.urdf under any site-packages directory on this interpreter."""
+    roots: list[str] = []
+    try:
+        roots += site.getsitepackages()
+    except AttributeError:  # some virtualenv builds lack it
+        pass
+    try:
+        roots.append(site.getusersitepackages())
+    except AttributeError:
+        pass
+    roots += [p for p in sys.path if p]
+    seen: set[str] = set()
+    for root in roots:
+        if root in seen:
+            continue
+        seen.add(root)
+        candidate = Path(root) / URDF_RELPATH
+        if candidate.is_file():
+            return candidate
+    raise DriverUnavailable(
+        "Panda URDF not found: install the 'example-robot-data' package (pip install example-robot-data), "
+        "or give the robot's urdf path in the configuration"
+    )
+
+
+@functools.lru_cache(maxsize=4)
+def _arm_model(urdf: str) -> pin.Model:
+    """The 7-joint arm model of a Panda URDF (finger joints locked at 0). Cached: treat as read-only."""
+    try:
+        full = pin.buildModelFromUrdf(urdf)
+    except (RuntimeError, ValueError) as exc:
+        raise DriverError(f"{urdf}: cannot build a kinematic model: {exc}") from exc
+    missing = [n for n in ARM_JOINTS + FINGER_JOINTS if not full.existJointName(n)]
+    if missing:
+        raise DriverError(f"{urdf}: not a Panda URDF, missing joints {', '.join(missing)}")
+    lock = [full.getJointId(n) for n in FINGER_JOINTS]
+    model = pin.buildReducedModel(full, lock, pin.neutral(full))
+    if model.nq != N_JOINTS or not model.existFrame(FLANGE_LINK):
+        raise DriverError(f"{urdf}: expected 7 arm joints and a {FLANGE_LINK} frame")
+    return model
+
+
+def _rigid(T: np.ndarray | None, name: str) -> pin.SE3 | None:
+    if T is None:
+        return None
+    T = validate_T(T, name)
+    return pin.SE3(T[:3, :3].copy(), T[:3, 3].copy())
+
+
+@dataclass(frozen=True)
+class IKResult:
+    """Outcome of one IK solve; `q` is the last iterate even when `success` is False."""
+
+    q: np.ndarray
+    success: bool
+    pos_err: float  # m
+    rot_err: float  # rad
+    iterations: int
+
+
+class PandaKinematics:
+    """Panda forward/inverse kinematics with a camera and an optional tool mounted on the flange.
+
+    `q_min`/`q_max` are the joint limits used everywhere (planning, IK, the
+    robot's command check): the URDF's, intersected with the datasheet's, and
+    shrunk by `position_margin` on each side. `dq_max`, `ddq_max`, `dddq_max`
+    are the datasheet's velocity, acceleration and jerk limits.
+    """
+
+    def __init__(
+        self,
+        *,
+        T_flange_cam: np.ndarray | None = None,
+        T_flange_tcp: np.ndarray | None = None,
+        urdf: str | Path | None = None,
+        position_margin: float = 0.0,
+        q_neutral: np.ndarray | None = None,
+    ) -> None:
+        if urdf is None:
+            urdf_path = find_panda_urdf()
+        else:
+            urdf_path = Path(urdf)
+            if not urdf_path.is_file():
+                raise DriverUnavailable(f"Panda URDF not found at {urdf_path}")
+        self.urdf = urdf_path
+        base = _arm_model(str(urdf_path.resolve()))
+        model = pin.Model(base)  # our own copy: we add the camera/tcp frames to it
+        flange_id = model.getFrameId(FLANGE_LINK)
+        flange = model.frames[flange_id]
+        self._fid = {"flange": flange_id}
+        self.T_flange_cam = None if T_flange_cam is None else validate_T(T_flange_cam, "T_flange_cam").copy()
+        self.T_flange_tcp = None if T_flange_tcp is None else validate_T(T_flange_tcp, "T_flange_tcp").copy()
+        for name, T in (("camera", T_flange_cam), ("tcp", T_flange_tcp)):
+            M = _rigid(T, f"T_flange_{'cam' if name == 'camera' else name}")
+            if M is not None:
+                frame = pin.Frame(name, flange.parentJoint, flange_id, flange.placement * M, pin.FrameType.OP_FRAME)
+                self._fid[name] = model.addFrame(frame)
+        self.model = model
+        self.data = model.createData()
+
+        if not math.isfinite(position_margin) or position_margin < 0:
+            raise ValueError(f"position_margin must be a finite non-negative number, got {position_margin}")
+        self.position_margin = float(position_margin)
+        self.urdf_q_min = np.array(model.lowerPositionLimit, dtype=float)
+        self.urdf_q_max = np.array(model.upperPositionLimit, dtype=float)
+        self.q_min = np.maximum(self.urdf_q_min, DATASHEET_Q_MIN) + position_margin
+        self.q_max = np.minimum(self.urdf_q_max, DATASHEET_Q_MAX) - position_margin
+        if np.any(self.q_min >= self.q_max):
+            raise ValueError(f"position_margin {position_margin} rad leaves no joint range")
+        urdf_v = np.array(model.velocityLimit, dtype=float)
+        self.velocity_limit_source = (
+            "urdf (equal to datasheet)" if np.allclose(urdf_v, DATASHEET_DQ_MAX) else f"datasheet (urdf gave {urdf_v.tolist()})"
+        )
+        self.dq_max = DATASHEET_DQ_MAX.copy()
+        self.ddq_max = DATASHEET_DDQ_MAX.copy()
+        self.dddq_max = DATASHEET_DDDQ_MAX.copy()
+        for a in (self.q_min, self.q_max, self.dq_max, self.ddq_max, self.dddq_max):
+            a.setflags(write=False)
+
+        qn = Q_READY if q_neutral is None else np.asarray(q_neutral, dtype=float)
+        if qn.shape != (N_JOINTS,) or not self.within_limits(qn):
+            raise ValueError(f"q_neutral must be 7 joint angles within limits, got {qn}")
+        self.q_neutral = qn.copy()
+        self.q_neutral.setflags(write=False)
+
+    # -- bookkeeping ---------------------------------------------------------
+    @property
+    def q_ready(self) -> np.ndarray:
+        """A safe default start posture (libfranka's ready pose)."""
+        return Q_READY.copy()
+
+    @property
+    def frames(self) -> tuple[str, ...]:
+        """Frame names this instance can evaluate."""
+        return tuple(f for f in FRAMES if f in self._fid)
+
+    def clone(self) -> PandaKinematics:
+        """Another instance with the same model and fresh scratch data (for another thread)."""
+        other = object.__new__(PandaKinematics)
+        other.__dict__.update(self.__dict__)
+        other.data = self.model.createData()
+        return other
+
+    def within_limits(self, q: np.ndarray, tol: float = 0.0) -> bool:
+        """True if `q` is 7 finite angles inside [q_min - tol, q_max + tol]."""
+        q = np.asarray(q, dtype=float)
+        return bool(
+            q.shape == (N_JOINTS,) and np.all(np.isfinite(q))
+            and np.all(q >= self.q_min - tol) and np.all(q <= self.q_max + tol)
+        )
+
+    def _frame_id(self, frame: str) -> int:
+        try:
+            return self._fid[frame]
+        except KeyError:
+            if frame in FRAMES:
+                raise ValueError(f"no {frame} frame: T_flange_{'cam' if frame == 'camera' else frame} "
+                                 "was not given") from None
+            raise ValueError(f"unknown frame {frame!r}; expected one of {FRAMES}") from None
+
+    @staticmethod
+    def _q(q: np.ndarray) -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        if q.shape != (N_JOINTS,):
+            raise ValueError(f"expected 7 joint angles, got shape {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"joint angles must be finite, got {q}")
+        return q
+
+    # -- kinematics ----------------------------------------------------------
+    def fk(self, q: np.ndarray, frame: str = "flange") -> np.ndarray:
+        """`T_base_<frame>` at joint angles `q`."""
+        fid = self._frame_id(frame)
+        pin.forwardKinematics(self.model, self.data, self._q(q))
+        return pin.updateFramePlacement(self.model, self.data, fid).homogeneous
+
+    def jacobian(self, q: np.ndarray, frame: str = "flange") -> np.ndarray:
+        """6x7 Jacobian of `frame`, LOCAL_WORLD_ALIGNED: [v_origin; omega] in base axes."""
+        fid = self._frame_id(frame)
+        return pin.computeFrameJacobian(self.model, self.data, self._q(q), fid, pin.LOCAL_WORLD_ALIGNED)
+
+    def _fk_jac(self, q: np.ndarray, fid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position, rotation and LOCAL_WORLD_ALIGNED Jacobian of frame `fid` in one pass."""
+        pin.computeJointJacobians(self.model, self.data, q)
+        M = pin.updateFramePlacement(self.model, self.data, fid)
+        J = pin.getFrameJacobian(self.model, self.data, fid, pin.LOCAL_WORLD_ALIGNED)
+        return M.translation, M.rotation, J
+
+    def ik(
+        self,
+        T_base_goal: np.ndarray,
+        q_seed: np.ndarray | None = None,
+        frame: str = "camera",
+        *,
+        tol_pos: float = 1e-5,
+        tol_rot: float = 1e-4,
+        max_iter: int = 100,
+        null_gain: float = 0.1,
+        max_step: float = 0.3,
+        sigma_damp: float = 0.05,
+        damping: float = 0.05,
+    ) -> IKResult:
+        """Damped-least-squares IK for `frame` to reach `T_base_goal`, starting at `q_seed`.
+
+        Each iteration solves J dq = e (e = [position error; rotation vector of
+        R_goal R^T], base axes) with the pseudo-inverse from the SVD of J, damped
+        only when the smallest singular value falls below `sigma_damp`
+        (Maciejewski-Klein), adds a null-space pull toward `q_neutral` with gain
+        `null_gain`, caps the step at `max_step` rad per joint and clamps to the
+        joint limits; joints held at a limit leave the solve. Converged when the
+        position error <= `tol_pos` (m) and the rotation error <= `tol_rot` (rad).
+        """
+        fid = self._frame_id(frame)
+        T_goal = validate_T(T_base_goal, "T_base_goal")
+        p_goal, R_goal = T_goal[:3, 3], T_goal[:3, :3]
+        q = np.clip(self._q(self.q_neutral if q_seed is None else q_seed), self.q_min, self.q_max)
+        eye = np.eye(N_JOINTS)
+        pos_err = rot_err = math.inf
+        it = 0
+        while True:
+            p, R, J = self._fk_jac(q, fid)
+            e = np.concatenate([p_goal - p, pin.log3(R_goal @ R.T)])
+            pos_err = float(np.linalg.norm(e[:3]))
+            rot_err = float(np.linalg.norm(e[3:]))
+            if pos_err <= tol_pos and rot_err <= tol_rot:
+                return IKResult(q, True, pos_err, rot_err, it)
+            if it >= max_iter:
+                return IKResult(q, False, pos_err, rot_err, it)
+            it += 1
+            # The pull decays geometrically so it shapes the early iterations but
+            # cannot hold the residual above tolerance (a null-space step is only
+            # first-order free of task error).
+            pull = (null_gain * 0.5 ** (it - 1)) * (self.q_neutral - q)
+            free = np.ones(N_JOINTS, dtype=bool)
+            for _ in range(2):  # second pass only if a joint at its limit would be pushed outward
+                Jf = J * free
+                U, S, Vt = np.linalg.svd(Jf, full_matrices=False)
+                s_min = S[-1]
+                lam2 = 0.0 if s_min >= sigma_damp else (1.0 - (s_min / sigma_damp) ** 2) * damping**2
+                J_pinv = (Vt.T * (S / (S * S + lam2))) @ U.T
+                dq = J_pinv @ e + (eye - J_pinv @ Jf) @ (pull * free)
+                blocked = ((q <= self.q_min) & (dq < 0)) | ((q >= self.q_max) & (dq > 0))
+                if not np.any(blocked & free):
+                    break
+                free &= ~blocked
+            dq *= free
+            peak = float(np.max(np.abs(dq)))
+            if peak > max_step:
+                dq *= max_step / peak
+            q = np.clip(q + dq, self.q_min, self.q_max)
+
+    def ik_or_raise(self, T_base_goal: np.ndarray, q_seed: np.ndarray | None = None, frame: str = "camera",
+                    **options: float) -> np.ndarray:
+        """Like `ik` but returns only `q`, raising KinematicsError (with `.result`) if it did not converge."""
+        res = self.ik(T_base_goal, q_seed, frame, **options)
+        if not res.success:
+            err = KinematicsError(
+                f"IK for the {frame} frame did not converge after {res.iterations} iterations: "
+                f"position error {res.pos_err * 1000:.3f} mm, rotation error {math.degrees(res.rot_err):.4f} deg "
+                f"(goal at {np.round(np.asarray(T_base_goal)[:3, 3], 4).tolist()} m in the base frame)"
+            )
+            err.result = res  # type: ignore[attr-defined]
+            raise err
+        return res.q
