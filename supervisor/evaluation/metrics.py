@@ -1,0 +1,81 @@
+"""The paper's metrics (METHOD.md §4): actual boundary, safe path length, incursion rate, sweeps.
+
+Units follow the caller (radians or metres in code); every function is pure.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def actual_boundary(x: np.ndarray, mean_t_err: np.ndarray, mean_r_err: np.ndarray, tol_t: float,
+                    tol_r: float) -> float:
+    """theta_a: where the mean error per position first exceeds the tolerance (translation OR rotation).
+
+    Linearly interpolated between the last position within tolerance and the
+    first beyond it (per quantity; the earlier crossing wins). Never exceeded ->
+    the last position; exceeded at the first position -> the first position. A
+    non-finite mean error (lost frames) counts as exceeded, crossing at that position.
+    """
+    x = np.asarray(x, float)
+    if len(x) == 0:
+        raise ValueError("no positions")
+    order = np.argsort(x)
+    x = x[order]
+    errs = [(np.asarray(mean_t_err, float)[order], tol_t), (np.asarray(mean_r_err, float)[order], tol_r)]
+    best = float(x[-1])
+    for e, tol in errs:
+        bad = ~(e <= tol)  # NaN counts as exceeded
+        if not bad.any():
+            continue
+        k = int(np.argmax(bad))
+        if k == 0:
+            return float(x[0])
+        if math.isfinite(e[k]) and e[k] > e[k - 1]:
+            cross = x[k - 1] + (tol - e[k - 1]) / (e[k] - e[k - 1]) * (x[k] - x[k - 1])
+        else:
+            cross = x[k]  # lost frames: no error to interpolate toward
+        best = min(best, float(cross))
+    return best
+
+
+def spl(predicted: float, actual: float) -> float:
+    """Safe path length: min(theta_p, theta_a)."""
+    return min(predicted, actual)
+
+
+def incursion_rate(pairs: Sequence[tuple[float, float]], eps: float = 1e-9) -> float:
+    """R_i = I / n, I = trials with theta_p > theta_a."""
+    if not pairs:
+        raise ValueError("no trials")
+    return sum(1 for p, a in pairs if p > a + eps) / len(pairs)
+
+
+@dataclass(frozen=True)
+class CurvePoint:
+    operating_point: float  # n_t, or the static envelope (SI)
+    mean_spl: float
+    incursion_rate: float
+    stops: tuple[float, ...]
+
+
+def sweep(operating_points: Sequence[float], stop_at: Callable[[float, int], float],
+          actual: Sequence[float]) -> list[CurvePoint]:
+    """For each operating point, the stop of every trial (`stop_at(op, trial)`) -> mean SPL and R_i."""
+    out = []
+    for op in operating_points:
+        stops = [float(stop_at(op, i)) for i in range(len(actual))]
+        pairs = list(zip(stops, actual))
+        out.append(CurvePoint(float(op), float(np.mean([spl(p, a) for p, a in pairs])), incursion_rate(pairs),
+                              tuple(stops)))
+    return out
+
+
+def max_mean_spl_zero_incursion(curve: Sequence[CurvePoint]) -> CurvePoint | None:
+    """The operating point with the largest mean SPL among those with no incursion (None if none)."""
+    safe = [c for c in curve if c.incursion_rate == 0.0]
+    return max(safe, key=lambda c: c.mean_spl) if safe else None

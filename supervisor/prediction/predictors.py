@@ -1,0 +1,173 @@
+"""Predictors: samples in, prediction out, state visible (METHOD.md §3).
+
+All take samples in SI units (radians or metres, see `Axis`) one sampling step
+at a time (`update(xs, ns)` with the step's frames) and return a `Prediction`
+whose `boundary` is in SI units. Thresholds `n_t` and the step `theta_b` come
+from the stage. A predictor never raises for bad data: it returns
+`Prediction(valid=False, ...)`, which the supervisor treats as "no new motion".
+
+- `LongRangePredictor`: fits once on the first k positions (default 4), then
+  keeps that boundary (planning-style).
+- `NextStepPredictor`: refits after every step; the next step is allowed only
+  if theta_p > theta_i + theta_b.
+- `StaticEnvelope`: a fixed boundary (the baseline).
+- `MLPPredictor` (mlp.py): the paper's neural-network baseline, next-step rule.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from supervisor.prediction.emg import ANGLE, Axis
+from supervisor.prediction.models import VARIANTS, ModelFit, fit_variant
+
+
+@dataclass(frozen=True)
+class Prediction:
+    valid: bool
+    boundary: float  # SI; nan when not valid
+    allow_next: bool | None  # next-step rule (None: the predictor has no opinion)
+    reason: str
+    x_now: float  # SI, the furthest sampled position
+    fit: object | None = None  # FitResult (params in fit units) when there is one
+    params: tuple[float, float, float] | None = None  # (alpha, K, mu) in fit units, for plots
+
+
+@dataclass
+class _Samples:
+    xs: list[float] = field(default_factory=list)  # SI
+    ns: list[float] = field(default_factory=list)
+    steps: int = 0
+
+    def add(self, xs: np.ndarray, ns: np.ndarray) -> None:
+        xs = np.asarray(xs, float).ravel()
+        ns = np.asarray(ns, float).ravel()
+        if xs.shape != ns.shape:
+            raise ValueError(f"xs and ns differ in length ({len(xs)} vs {len(ns)})")
+        self.xs.extend(xs.tolist())
+        self.ns.extend(ns.tolist())
+        self.steps += 1
+
+    @property
+    def x_now(self) -> float:
+        return max(self.xs) if self.xs else 0.0
+
+
+class _FittingPredictor:
+    """Shared machinery of the EMG-based predictors."""
+
+    kind = "base"
+
+    def __init__(self, n_t: float, step: float, variant: str = "paper", axis: Axis = ANGLE,
+                 x_max: float = math.radians(45.0)) -> None:
+        if not (math.isfinite(n_t) and n_t > 0):
+            raise ValueError(f"n_t must be a positive number, got {n_t}")
+        if not (math.isfinite(step) and step > 0):
+            raise ValueError(f"step must be > 0, got {step}")
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown model variant {variant!r}; expected one of {VARIANTS}")
+        self.n_t, self.step, self.variant, self.axis, self.x_max = float(n_t), float(step), variant, axis, float(x_max)
+        self.samples = _Samples()
+        self.last: Prediction | None = None
+
+    def reset(self) -> None:
+        self.samples = _Samples()
+        self.last = None
+
+    def _fit(self) -> ModelFit:
+        s = self.samples
+        return fit_variant(self.variant, self.axis.to_fit(np.array(s.xs)), np.array(s.ns))
+
+    def _predict(self, mf: ModelFit) -> Prediction:
+        x_now = self.samples.x_now
+        if not mf.ok:
+            return Prediction(False, math.nan, False, f"no valid model: {mf.fit.reason}", x_now, mf.fit)
+        b_fit = mf.boundary(self.n_t, float(self.axis.to_fit(x_now)), float(self.axis.to_fit(self.x_max)))
+        b = self.axis.to_si(b_fit)
+        return Prediction(True, b, b > x_now + self.step - 1e-12, "ok", x_now, mf.fit, mf.fit.params)
+
+
+class NextStepPredictor(_FittingPredictor):
+    kind = "next_step"
+
+    def update(self, xs: np.ndarray, ns: np.ndarray) -> Prediction:
+        self.samples.add(xs, ns)
+        self.last = self._predict(self._fit())
+        return self.last
+
+
+class LongRangePredictor(_FittingPredictor):
+    kind = "long_range"
+
+    def __init__(self, n_t: float, step: float, variant: str = "paper", axis: Axis = ANGLE,
+                 x_max: float = math.radians(45.0), k_positions: int = 4) -> None:
+        super().__init__(n_t, step, variant, axis, x_max)
+        if k_positions < 2:
+            raise ValueError(f"k_positions must be >= 2, got {k_positions}")
+        self.k_positions = k_positions
+        self._fixed: Prediction | None = None
+
+    def reset(self) -> None:
+        super().reset()
+        self._fixed = None
+
+    def update(self, xs: np.ndarray, ns: np.ndarray) -> Prediction:
+        self.samples.add(xs, ns)
+        x_now = self.samples.x_now
+        if self._fixed is None:
+            if self.samples.steps < self.k_positions:
+                self.last = Prediction(False, math.nan, None, f"warming up: {self.samples.steps}/{self.k_positions} "
+                                       "positions", x_now)
+                return self.last
+            self._fixed = self._predict(self._fit())
+        f = self._fixed
+        if not f.valid:
+            self.last = Prediction(False, math.nan, False, f.reason, x_now, f.fit)
+        else:
+            self.last = Prediction(True, f.boundary, f.boundary > x_now + self.step - 1e-12, "ok", x_now, f.fit,
+                                   f.params)
+        return self.last
+
+
+class StaticEnvelope:
+    """A fixed boundary for every scene (the paper's static baseline)."""
+
+    kind = "static"
+
+    def __init__(self, limit: float, step: float) -> None:
+        if not (math.isfinite(limit) and limit >= 0):
+            raise ValueError(f"static envelope must be a finite angle >= 0, got {limit}")
+        self.limit, self.step = float(limit), float(step)
+        self.samples = _Samples()
+        self.last: Prediction | None = None
+
+    def reset(self) -> None:
+        self.samples = _Samples()
+
+    def update(self, xs: np.ndarray, ns: np.ndarray) -> Prediction:
+        self.samples.add(xs, ns)
+        x_now = self.samples.x_now
+        self.last = Prediction(True, self.limit, self.limit > x_now + self.step - 1e-12, "static envelope", x_now)
+        return self.last
+
+
+PREDICTORS = ("next_step", "long_range", "static", "mlp")
+
+
+def make_predictor(kind: str, variant: str, n_t: float, step: float, *, axis: Axis = ANGLE,
+                   hard_limit: float = math.radians(45.0), static_limit: float | None = None, seed: int = 0):
+    """The predictor a stage names (`predictor`, `variant`, `n_t`, `step`)."""
+    if kind == "next_step":
+        return NextStepPredictor(n_t, step, variant, axis, hard_limit)
+    if kind == "long_range":
+        return LongRangePredictor(n_t, step, variant, axis, hard_limit)
+    if kind == "static":
+        return StaticEnvelope(hard_limit if static_limit is None else static_limit, step)
+    if kind == "mlp":
+        from supervisor.prediction.mlp import MLPPredictor
+
+        return MLPPredictor(n_t, step, axis, hard_limit, seed=seed)
+    raise ValueError(f"unknown predictor {kind!r}; expected one of {PREDICTORS}")
