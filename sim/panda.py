@@ -303,6 +303,17 @@ class PandaKinematics:
         """Like `ik` but returns only `q`, raising KinematicsError (with `.result`) if it did not converge."""
         res = self.ik(T_base_goal, q_seed, frame, **options)
         if not res.success:
+            # DLS can stall in a local minimum (near a joint limit): retry from the neutral posture and
+            # from deterministic perturbations of the seed before declaring the pose unreachable.
+            base = self.q_neutral if q_seed is None else np.asarray(q_seed, dtype=float)
+            rng = np.random.default_rng(12345)
+            for seed in [self.q_neutral, *(base + rng.uniform(-0.4, 0.4, N_JOINTS) for _ in range(6))]:
+                retry = self.ik(T_base_goal, np.clip(seed, self.q_min, self.q_max), frame, **options)
+                if retry.success:
+                    return retry.q
+                if retry.pos_err + retry.rot_err < res.pos_err + res.rot_err:
+                    res = retry
+        if not res.success:
             err = KinematicsError(
                 f"IK for the {frame} frame did not converge after {res.iterations} iterations: "
                 f"position error {res.pos_err * 1000:.3f} mm, rotation error {math.degrees(res.rot_err):.4f} deg "

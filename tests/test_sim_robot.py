@@ -115,3 +115,20 @@ def test_sim_driver_is_registered_and_steps_the_robot(kin):
         assert drv.state().seq == 1
     with pytest.raises(DriverUnavailable, match="unknown robot driver"):
         ROBOTS.load("ur5")
+
+
+def test_every_shipped_scene_start_view_and_arcs_are_reachable(kin):
+    """The benchmark suite drives the robot to each scene's start view and along 45 deg arcs."""
+    from sim.scene import list_scenes, load_scene
+    from supervisor.motion.paths import ArcPath, start_camera_pose
+
+    q_start = np.radians([0, -45, 0, -135, 0, 90, 45])
+    for name in list_scenes():
+        sc = load_scene(name)
+        pivot = (sc.T_base_scene @ np.append(sc.pivot, 1.0))[:3]
+        T0 = start_camera_pose(pivot, sc.view.radius, sc.view.elevation, sc.view.heading)
+        q0 = kin.ik_or_raise(T0, q_start, "camera")
+        for az in (0.0, 90.0, 270.0):
+            q = q0
+            for k in range(0, 21, 4):
+                q = kin.ik_or_raise(ArcPath(T0, pivot, math.radians(az)).pose(math.radians(2.25 * k)), q, "camera")

@@ -22,7 +22,7 @@ from pathlib import Path
 from sim.scene import list_scenes
 from supervisor.config import Config, load_config
 from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
-from supervisor.errors import DatasetError
+from supervisor.errors import DatasetError, SupervisorError
 
 SUITE_FILE = "suite.json"
 ARC_AZIMUTHS_DEG = (0.0, 90.0, 270.0)
@@ -85,13 +85,22 @@ def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int 
     done = len(items) - len(todo)
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         futures = {pool.submit(_run_item, cfg.file, str(out / i.name), i, ipp, seed): i for i in todo}
+        failed: list[str] = []
         for fut in as_completed(futures):
             item = futures[fut]
-            secs = fut.result()
             done += 1
             elapsed = time.monotonic() - t0
             eta = elapsed / max(1, done - (len(items) - len(todo))) * (len(items) - done)
+            try:
+                secs = fut.result()
+            except SupervisorError as exc:  # one unreachable motion must not discard the other datasets
+                failed.append(f"{item.name}: {exc}")
+                log(f"[{done}/{len(items)}] {item.name} FAILED: {exc}")
+                continue
             log(f"[{done}/{len(items)}] {item.name} done in {secs:.0f} s  (elapsed {elapsed:.0f} s, eta {eta:.0f} s)")
+    if failed:
+        raise DatasetError(out, f"{len(failed)} of {len(todo)} datasets failed (the others are complete; rerun to "
+                                f"retry): " + "; ".join(failed))
     return out
 
 
