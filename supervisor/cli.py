@@ -110,6 +110,40 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from supervisor.evaluation.experiments import run_evaluation
+    from supervisor.evaluation.report import tables
+
+    cfg = _config(args)
+    report = run_evaluation(cfg, args.bench_dir, args.out, jobs=args.jobs or 2)
+    print(tables(report))
+    print(f"wrote {Path(args.out) / 'results.json'}, tables.md and SPL-vs-incursion plots")
+    return 0
+
+
+def cmd_dry_run(args: argparse.Namespace) -> int:
+    """The product's main job: one gated arc on the sim robot with the synthetic camera and the real pipeline."""
+    from supervisor.dryrun import DryRunSpec, run_dry_run
+
+    cfg = _config(args)
+    spec = DryRunSpec(stage=args.stage or cfg.default_stage, azimuth=math.radians(args.azimuth),
+                      sampling=args.sampling, scene=args.scene, seed=args.seed, oracle=not args.no_oracle)
+    out = Path(args.out)
+    s = run_dry_run(cfg, spec, out)
+    print(f"stage {s['stage']} ({s['sampling']}), scene {s['scene']}, azimuth {s['azimuth_deg']:g} deg: "
+          f"halted at {s['halt_angle_deg']:.2f} deg ({s['halt_reason']})")
+    if s.get("predicted_boundary_deg") is not None:
+        print(f"  predicted boundary theta_p {s['predicted_boundary_deg']:.2f} deg, allowed "
+              f"{s['theta_allowed_at_brake_deg']:.2f} deg, max overshoot {s['max_overshoot_deg']:+.3f} deg")
+    if "actual_boundary_deg" in s:
+        ab = s["actual_boundary_deg"]
+        print(f"  actual boundary (ground truth): {ab['4mm_10deg']:.2f} deg at 4 mm/10 deg, "
+              f"{ab['2mm_3deg']:.2f} deg at 2 mm/3 deg; incursion: {'YES' if s['incursion'] else 'no'}; "
+              f"envelope usage {100 * s['envelope_usage']:.0f}%")
+    print(f"wrote {out / 'summary.json'}, {out / 'events.jsonl'}, {out / 'timeline.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="supervisor", description=__doc__.splitlines()[0])
     p.add_argument("--config", default=None, help="configuration YAML (default: embedded config/default.yaml)")
@@ -147,6 +181,23 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("-o", "--out", required=True)
     lo.add_argument("--roi", choices=["predicted", "off"], default=None, help="override localization.roi")
     lo.set_defaults(func=cmd_localize)
+
+    ev = sub.add_parser("evaluate", help="the paper's offline evaluation of every predictor on a benchmark suite")
+    ev.add_argument("bench_dir")
+    ev.add_argument("-o", "--out", required=True)
+    ev.add_argument("--jobs", type=int, default=None, help="parallel processes (default 2)")
+    ev.set_defaults(func=cmd_evaluate)
+
+    dr = sub.add_parser("dry-run", help="gated arc on the simulated robot with the real pipeline (main job)")
+    dr.add_argument("--stage", default=None, help="stage name (default: the config's default_stage)")
+    dr.add_argument("--scene", default=None, help="scene name or YAML path (default: the config's)")
+    dr.add_argument("--azimuth", type=float, default=90.0, help="arc direction [deg]: 0 up, 90 right, 270 left")
+    dr.add_argument("--sampling", choices=["stop_and_go", "continuous"], default=None,
+                    help="override the stage's sampling mode")
+    dr.add_argument("--seed", type=int, default=0)
+    dr.add_argument("--no-oracle", action="store_true", help="skip the ground-truth sweep (no actual boundary)")
+    dr.add_argument("-o", "--out", default="out/dry-run")
+    dr.set_defaults(func=cmd_dry_run)
 
     de = sub.add_parser("demo", help="quick dataset + localization table (the default main job)")
     de.add_argument("-o", "--out", default="out/demo")

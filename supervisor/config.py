@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,8 @@ from supervisor.geometry import transform_from_config
 from drivers.camera import CAMERAS
 from drivers.robot import ROBOTS
 from supervisor.localization.settings import LocalizerSettings
+from supervisor.prediction.models import VARIANTS
+from supervisor.stages import StageConfig, parse_stages
 
 from supervisor.paths import DEFAULT_CONFIG
 from supervisor.yamlschema import Node, load_yaml_text
@@ -77,6 +80,16 @@ class Config:
     dataset: DatasetProtocol
     file: str
     sha256: str
+    stages: Mapping[str, StageConfig] = field(default_factory=dict)
+    default_stage: str = ""
+
+    def stage(self, name: str | None = None) -> StageConfig:
+        """The named stage (default: `default_stage`); an unknown name is a ConfigError."""
+        name = name or self.default_stage
+        if name not in self.stages:
+            raise ConfigError(Path(self.file), "stages", f"unknown stage {name!r}; defined: "
+                              f"{', '.join(self.stages) or 'none'}")
+        return self.stages[name]
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -97,11 +110,25 @@ def load_config(path: str | Path | None = None) -> Config:
         scene=root.string("scene"),
         localization=LocalizerSettings.from_node(root.child("localization", {})),
         dataset=_dataset(root.child("dataset", {})),
+        stages=_stages(root),
+        default_stage=root.string("default_stage"),
         file=str(path),
         sha256=hashlib.sha256(raw).hexdigest(),
     )
+    if cfg.default_stage not in cfg.stages:
+        raise root.error("default_stage", f"expected one of the stages ({', '.join(cfg.stages)}), "
+                                          f"got {cfg.default_stage!r}")
     root.done()
     return cfg
+
+
+def _stages(root: Node) -> Mapping[str, StageConfig]:
+    stages = parse_stages(root)
+    for name, st in stages.items():
+        if st.variant not in VARIANTS:
+            raise ConfigError(root.file, f"stages.{name}.variant", f"expected one of {', '.join(VARIANTS)}, "
+                              f"got {st.variant!r}")
+    return stages
 
 
 def _robot(n: Node, file: Path) -> RobotConfig:

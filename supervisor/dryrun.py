@@ -1,0 +1,188 @@
+"""The dry-run: the whole supervisor on the simulated Panda and the synthetic camera.
+
+Sequence, as on the real robot: move to the scene's start view, record the two
+model images 2 cm apart, build the target model, return to the start view, then
+run one gated arc with the configured stage. Afterwards an *oracle sweep*
+(rendered frames along the full arc, localized with the same model, compared
+with ground truth) gives the actual envelope boundary the halt is judged
+against. Outputs: `summary.json`, `events.jsonl`, `timeline.png`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.camera.sim import SimCamera
+from drivers.robot.sim import SimRobotDriver
+from sim.panda import PandaKinematics
+from sim.renderer import Renderer
+from sim.robot import SimRobot
+from sim.scene import Scene, load_scene
+from supervisor.clock import SimClock
+from supervisor.config import Config
+from supervisor.evaluation.metrics import actual_boundary
+from supervisor.geometry import make_T, pose_error
+from supervisor.localization.artifacts import viewing_angle
+from supervisor.localization.localizer import Localizer, predict_target_pose
+from supervisor.localization.model import BoxROI, TargetModel, build_model
+from supervisor.motion.paths import ArcPath, start_camera_pose
+from supervisor.motion.plan import PathFollower
+from supervisor.prediction import make_predictor
+from supervisor.runtime.events import EventLog
+from supervisor.runtime.loop import RunRecord, SupervisorLoop
+from supervisor.runtime.worker import InlineWorker
+from supervisor.stages import StageConfig
+
+TOLERANCES = {"2mm_3deg": (0.002, math.radians(3.0)), "4mm_10deg": (0.004, math.radians(10.0))}
+ORACLE_STEP = math.radians(2.25)
+ORACLE_FRAMES = 3
+
+
+@dataclass(frozen=True)
+class DryRunSpec:
+    stage: str
+    azimuth: float  # rad
+    sampling: str | None = None  # override the stage's sampling mode
+    scene: str | None = None
+    seed: int = 0
+    oracle: bool = True
+
+
+def _build_world(cfg: Config, scene: Scene, seed: int):
+    clock = SimClock()
+    kin = PandaKinematics(T_flange_cam=cfg.camera.T_flange_cam, urdf=cfg.robot.urdf)
+    sim = SimRobot(kin, cfg.robot.q_start, dt=cfg.robot.control_period_s, clock=clock)
+    robot = SimRobotDriver(sim)
+    renderer = Renderer(scene, cfg.camera.intrinsics)
+    camera = SimCamera(renderer, lambda: sim.state().T_base_flange @ cfg.camera.T_flange_cam, clock,
+                       cfg.camera.frame_period_s, noise_seed=seed)
+    return clock, kin, sim, robot, renderer, camera
+
+
+def _model_images(cfg: Config, sim: SimRobot, camera: SimCamera, T_base_cam0: np.ndarray):
+    """Record the two model images (2 cm apart along camera x) from the robot, as in the live protocol."""
+    shots = []
+    for T in (T_base_cam0, T_base_cam0 @ make_T(np.eye(3), [cfg.dataset.model_baseline, 0.0, 0.0])):
+        sim.move_camera_to(T)
+        frame = camera.read(timeout=cfg.camera.timeout_s)
+        shots.append((frame.image, sim.state().T_base_flange @ cfg.camera.T_flange_cam))
+    return shots
+
+
+def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print) -> dict[str, Any]:
+    """Run one dry-run trial; write its outputs to `out` (if given) and return the summary."""
+    wall0 = time.monotonic()
+    stage: StageConfig = cfg.stage(spec.stage)
+    if spec.sampling is not None:
+        stage = dataclasses.replace(stage, sampling=spec.sampling)
+    scene = load_scene(spec.scene or cfg.scene)
+    clock, kin, sim, robot, renderer, camera = _build_world(cfg, scene, spec.seed)
+    pivot_base = (scene.T_base_scene @ np.append(scene.pivot, 1.0))[:3]
+    T_base_cam0 = start_camera_pose(pivot_base, scene.view.radius, scene.view.elevation, scene.view.heading)
+
+    progress(f"dry-run: scene {scene.name}, stage {stage.name} ({stage.sampling}, n_t={stage.n_t}, "
+             f"step {math.degrees(stage.step):.2f} deg), azimuth {math.degrees(spec.azimuth):g} deg")
+    (i0, T0), (i1, T1) = _model_images(cfg, sim, camera, T_base_cam0)
+    T_target_box, half = scene.target_box_in_target()
+    model = build_model(i0, i1, T0, T1, cfg.camera.intrinsics, cfg.localization, BoxROI(T_target_box, half),
+                        board=scene.board)
+    progress(f"  target model: {model.n_features} features, frame={model.frame}")
+    sim.move_camera_to(T0)
+
+    path = ArcPath(T0, pivot_base, spec.azimuth)
+    events = EventLog(None if out is None else out / "events.jsonl")
+    try:
+        events.emit(clock.now(), "config", sha256=cfg.sha256, file=str(cfg.file), stage=stage.name)
+        follower = PathFollower(path, stage.limits, kin, sim.state().q, robot.control_period)
+        predictor = make_predictor(stage.predictor, stage.variant, stage.n_t, stage.step, hard_limit=stage.hard_limit)
+        loop = SupervisorLoop(robot=robot, camera=camera, worker=InlineWorker(Localizer(model, cfg.localization)),
+                              predictor=predictor, stage=stage, follower=follower, kin=kin, T_base_cam_model=T0,
+                              T_cam_target_model=model.T_cam0_target, clock=clock, events=events,
+                              s_end=stage.hard_limit, frame_period=cfg.camera.frame_period_s)
+        record = loop.run()
+    finally:
+        events.close()
+    progress(f"  halted at {math.degrees(record.halt_s):.2f} deg ({record.halt_reason}) after "
+             f"{clock.now():.1f} s simulated")
+
+    # Measured on what the sim robot executed (its state after every command), not on the plan.
+    executed_theta = np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
+    oracle = _oracle(cfg, renderer, model, path, T0, stage.hard_limit, spec.seed) if spec.oracle else None
+    summary = _summary(cfg, stage, scene, spec, record, executed_theta, oracle, events, clock.now(),
+                       time.monotonic() - wall0)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = out / ".summary.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=2, sort_keys=True))
+        tmp.replace(out / "summary.json")
+        from supervisor.runtime.plots import plot_timeline
+
+        plot_timeline(record, oracle, summary, out / "timeline.png")
+    return summary
+
+
+def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, T0: np.ndarray, s_max: float,
+            seed: int) -> dict[str, Any]:
+    """Per-position mean localization errors along the whole arc (ground truth from the renderer)."""
+    loc = Localizer(model, cfg.localization)
+    thetas, t_errs, r_errs, n_mean = [], [], [], []
+    n_pos = int(math.floor(s_max / ORACLE_STEP + 1e-9)) + 1
+    for k in range(n_pos):
+        T = path.pose(k * ORACLE_STEP)
+        te, re, ns = [], [], []
+        for i in range(ORACLE_FRAMES):
+            fr = renderer.render(T, frame_index=100_000 + k * ORACLE_FRAMES + i, noise_seed=seed + 7)
+            res = loc.localize(fr.image, predict_target_pose(T, T0, model.T_cam0_target))
+            ns.append(res.n_inliers)
+            if res.ok:
+                e_t, e_r = pose_error(res.T_cam_target, fr.T_cam_target)
+            else:
+                e_t, e_r = math.inf, math.inf  # a failed localization exceeds every tolerance
+            te.append(e_t)
+            re.append(e_r)
+        thetas.append(viewing_angle(T0, T))
+        t_errs.append(float(np.mean(te)))
+        r_errs.append(float(np.mean(re)))
+        n_mean.append(float(np.mean(ns)))
+    th = np.array(thetas)
+    boundaries = {name: actual_boundary(th, np.array(t_errs), np.array(r_errs), tol_t, tol_r)
+                  for name, (tol_t, tol_r) in TOLERANCES.items()}
+    return {"theta": thetas, "t_err": t_errs, "r_err": r_errs, "n_mean": n_mean, "boundary": boundaries}
+
+
+def _summary(cfg, stage, scene, spec, record: RunRecord, executed_theta: np.ndarray, oracle, events: EventLog,
+             sim_time: float, wall_time: float) -> dict[str, Any]:
+    halt = record.halt_s
+    theta_p = [p for _, p, _ in record.theta_p_history if math.isfinite(p)]
+    allowed = record.s_allowed_at_brake
+    max_exec = float(executed_theta.max()) if len(executed_theta) else 0.0
+    out: dict[str, Any] = {
+        "stage": stage.name, "sampling": stage.sampling, "predictor": stage.predictor, "variant": stage.variant,
+        "n_t": stage.n_t, "step_deg": math.degrees(stage.step), "margin_deg": math.degrees(stage.margin),
+        "scene": scene.name, "azimuth_deg": math.degrees(spec.azimuth), "seed": spec.seed,
+        "config_sha256": cfg.sha256, "halt_reason": record.halt_reason,
+        "halt_angle_deg": math.degrees(halt),
+        "max_executed_angle_deg": math.degrees(max_exec),
+        "predicted_boundary_deg": math.degrees(theta_p[-1]) if theta_p else None,
+        "theta_allowed_at_brake_deg": math.degrees(allowed) if math.isfinite(allowed) else None,
+        "max_overshoot_deg": math.degrees(max_exec - allowed) if math.isfinite(allowed) else None,
+        "n_samples": len(record.samples), "n_predictions": len(record.theta_p_history),
+        "faults": [e["fault"] for e in events.of_kind("fault")],
+        "simulated_time_s": sim_time, "wall_time_s": wall_time,
+    }
+    if oracle is not None:
+        out["actual_boundary_deg"] = {k: math.degrees(v) for k, v in oracle["boundary"].items()}
+        a = oracle["boundary"]["4mm_10deg"]
+        out["incursion"] = bool(max_exec > a + 1e-9)
+        out["envelope_usage"] = float(halt / a) if a > 0 else None
+        out["incursion_by_tolerance"] = {k: bool(max_exec > v + 1e-9) for k, v in oracle["boundary"].items()}
+    return out
+

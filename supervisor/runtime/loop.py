@@ -1,0 +1,339 @@
+"""The supervisor loop: camera -> localizer -> predictor -> gate -> robot, one control tick at a time.
+
+One loop serves the dry-run (simulated clock, sim robot, synthetic camera) and
+the daemon (monotonic clock, real drivers): everything is injected.
+
+Per tick:
+1. read the robot state; a gap longer than the stage's `pose_gap` is a fault;
+2. grab a frame when one is due (continuous mode: every frame period while
+   moving; stop-and-go: N frames at rest after each step) and hand it to the
+   localization worker with the robot pose at the frame's time;
+3. take finished localizations, and once a step's samples are complete, update
+   the predictor -> `theta_p`, `theta_allowed = min(theta_p - margin, hard_limit)`;
+4. the gate decides from Ruckig's braking profile whether this is the last tick
+   at which a stop still ends at or before `theta_allowed`;
+5. the path follower advances (or brakes) and the robot gets one joint command.
+
+Fail safe: no valid prediction once the warm-up allowance is used up, a stale or
+missing frame, a robot-state gap, a rejected joint command -> brake, latched.
+The path coordinate `s` equals the viewing angle `theta` for an arc that starts
+at the model view (`ArcPath` rotates the camera rigidly by exactly `s`).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from supervisor.clock import Clock
+from supervisor.errors import CameraTimeout, SupervisorError
+from supervisor.localization.artifacts import viewing_angle
+from supervisor.localization.localizer import predict_target_pose
+from supervisor.motion.braking import PathState
+from supervisor.motion.gate import Gate
+from supervisor.motion.plan import MotionRejected, PathFollower
+from supervisor.runtime.events import EventLog
+from supervisor.runtime.history import StateHistory
+from supervisor.runtime.worker import FrameJob, InlineWorker
+from supervisor.stages import StageConfig
+
+_REST_V = 1e-9  # path velocity below which the robot is at rest
+
+
+class Phase(enum.Enum):
+    MOVING = "moving"
+    CAPTURING = "capturing"  # stop-and-go: at rest, taking the step's frames
+    WAITING = "waiting"  # stop-and-go: frames taken, waiting for localization + prediction
+    BRAKING = "braking"
+    HALTED = "halted"
+
+
+@dataclass
+class Sample:
+    """One localized frame as the predictor saw it."""
+
+    t: float
+    step: int
+    theta: float  # rad, from the robot pose at the frame's time
+    n_inliers: int
+    status: str
+    T_cam_target: np.ndarray | None
+    meta: dict[str, Any]
+
+
+@dataclass
+class RunRecord:
+    """Everything a run produced, for the summary and the plots."""
+
+    halt_reason: str = ""
+    halt_s: float = math.nan
+    s_allowed_at_brake: float = math.nan
+    theta_p_history: list[tuple[float, float, float]] = field(default_factory=list)  # (t, theta_p, theta_allowed)
+    samples: list[Sample] = field(default_factory=list)
+    trajectory_t: list[float] = field(default_factory=list)
+    trajectory_s: list[float] = field(default_factory=list)
+    trajectory_q: list[np.ndarray] = field(default_factory=list)
+    fits: list[dict[str, Any]] = field(default_factory=list)  # per predictor update
+
+
+class SupervisorLoop:
+    """Runs one gated motion along `path` (s from its current value to `s_end`)."""
+
+    def __init__(self, *, robot, camera, worker: InlineWorker, predictor, stage: StageConfig, follower: PathFollower,
+                 kin, T_base_cam_model: np.ndarray, T_cam_target_model: np.ndarray, clock: Clock,
+                 events: EventLog, s_end: float, frame_period: float) -> None:
+        self.robot = robot
+        self.camera = camera
+        self.worker = worker
+        self.predictor = predictor
+        self.stage = stage
+        self.follower = follower
+        self.kin = kin
+        self.T_base_cam_model = T_base_cam_model
+        self.T_cam_target_model = T_cam_target_model
+        self.clock = clock
+        self.events = events
+        self.s_end = min(float(s_end), stage.hard_limit)
+        self.frame_period = frame_period
+        self.dt = float(robot.control_period)
+        self.gate = Gate(follower.braking, self.dt)  # the same braking profile the follower executes
+        self.history = StateHistory(horizon=2.0, max_gap=stage.pose_gap)
+        self.record = RunRecord()
+        self._theta_allowed = self._warmup_allowance()
+        self._valid_prediction = False
+        self._step = 0
+        self._frames_in_step = 0
+        self._awaiting: dict[int, int] = {}  # step -> localizations outstanding
+        self._step_samples: dict[int, list[Sample]] = {}
+        self._last_frame_t: float | None = None
+        self._last_state_t: float | None = None
+        self._last_ok: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target)
+        self._phase = Phase.MOVING
+        self._target_s = 0.0
+        self._next_frame_t = -math.inf
+        self._closing: set[int] = set()  # continuous mode: steps complete in angle, awaiting localizations
+
+    # -- allowances ----------------------------------------------------------------------
+    def _warmup_allowance(self) -> float:
+        """Angle permitted before the predictor has produced its first valid model."""
+        return min(self.stage.warmup_steps * self.stage.step, self.stage.hard_limit)
+
+    def _set_prediction(self, t: float, pred) -> None:
+        """Turn a prediction (or its absence) into the angle the gate must not pass."""
+        s_now = self.follower.state.s
+        if pred is not None and pred.valid:
+            self._valid_prediction = True
+            allowed = min(pred.boundary - self.stage.margin, self.stage.hard_limit)
+            if pred.allow_next is False:
+                allowed = min(allowed, s_now)
+            self._theta_allowed = allowed
+            self.record.theta_p_history.append((t, pred.boundary, allowed))
+        else:
+            # No valid model: within the warm-up allowance keep it, beyond it stop now.
+            warm = self._warmup_allowance()
+            self._theta_allowed = warm if (not self._valid_prediction and s_now < warm) else min(s_now, warm)
+            if self._valid_prediction:
+                self._theta_allowed = s_now
+            self.record.theta_p_history.append((t, math.nan, self._theta_allowed))
+        self.events.emit(t, "prediction", valid=bool(pred is not None and pred.valid),
+                         theta_p_deg=math.degrees(pred.boundary) if pred is not None and pred.valid else None,
+                         theta_allowed_deg=math.degrees(self._theta_allowed),
+                         reason=getattr(pred, "reason", "no prediction"), s_deg=math.degrees(s_now))
+
+    # -- frames --------------------------------------------------------------------------
+    def _camera_pose_at(self, t: float) -> np.ndarray | None:
+        q = self.history.joints_at(t)
+        if q is None:
+            return None
+        return self.kin.fk(q, "camera")
+
+    def _grab(self, now: float) -> bool:
+        """Read one frame and submit it; False on a camera fault (caller brakes)."""
+        try:
+            frame = self.camera.read(timeout=self.stage.frame_timeout)
+        except CameraTimeout as exc:
+            self._fault(now, "camera_timeout", str(exc))
+            return False
+        except SupervisorError as exc:
+            self._fault(now, "camera_fault", str(exc))
+            return False
+        if frame.repeated or (self._last_frame_t is not None and frame.t <= self._last_frame_t):
+            self._fault(now, "stale_frame", f"frame seq {frame.seq} at t={frame.t:.4f} is not new")
+            return False
+        self._last_frame_t = frame.t
+        T_base_cam = self._camera_pose_at(min(frame.t, self.history.latest_time or frame.t))
+        if T_base_cam is None:
+            self._fault(now, "pose_unknown", f"no robot state around frame time {frame.t:.4f}")
+            return False
+        if self._last_ok is not None:
+            hint = predict_target_pose(T_base_cam, *self._last_ok)
+        else:
+            hint = predict_target_pose(T_base_cam, self.T_base_cam_model, self.T_cam_target_model)
+        job = FrameJob(frame.t, frame.seq, frame.image, T_base_cam, self._step, dict(frame.meta))
+        self.worker.submit(job, hint)
+        self._awaiting[self._step] = self._awaiting.get(self._step, 0) + 1
+        return True
+
+    def _collect(self, now: float) -> None:
+        for jr in self.worker.poll(now):
+            job, res = jr.job, jr.result
+            theta = viewing_angle(self.T_base_cam_model, job.T_base_cam)
+            if res.ok:
+                self._last_ok = (job.T_base_cam, res.T_cam_target)
+            s = Sample(job.t, job.step, theta, res.n_inliers, res.status.name, res.T_cam_target, job.meta)
+            self.record.samples.append(s)
+            self._step_samples.setdefault(job.step, []).append(s)
+            self._awaiting[job.step] -= 1
+            self.events.emit(now, "localization", step=job.step, frame_t=job.t, theta_deg=math.degrees(theta),
+                             n_inliers=res.n_inliers, status=res.status.name,
+                             latency_ms=(jr.ready_t - job.t) * 1000)
+
+    def _update_predictor(self, now: float, step: int) -> None:
+        samples = self._step_samples.get(step, [])
+        xs = np.array([s.theta for s in samples], float)
+        ns = np.array([s.n_inliers for s in samples], float)
+        try:
+            pred = self.predictor.update(xs, ns)
+        except Exception as exc:  # noqa: BLE001 - a predictor bug must stop the robot, not crash the loop
+            self.events.emit(now, "predictor_error", error=repr(exc))
+            pred = None
+        fit = getattr(pred, "fit", None)
+        self.record.fits.append({"t": now, "step": step, "theta_max": float(xs.max()) if len(xs) else math.nan,
+                                 "valid": bool(pred is not None and pred.valid),
+                                 "params": None if fit is None else getattr(fit, "params", None),
+                                 "boundary": None if pred is None else pred.boundary})
+        self._set_prediction(now, pred)
+
+    # -- faults and halts ----------------------------------------------------------------
+    def _fault(self, now: float, kind: str, detail: str) -> None:
+        self.events.emit(now, "fault", fault=kind, detail=detail, s_deg=math.degrees(self.follower.state.s))
+        self._halt(now, f"fault:{kind}")
+
+    def _halt(self, now: float, reason: str) -> None:
+        if self._phase in (Phase.BRAKING, Phase.HALTED):
+            return
+        self.record.halt_reason = reason
+        self.record.s_allowed_at_brake = self._theta_allowed
+        self.events.emit(now, "brake", reason=reason, s_deg=math.degrees(self.follower.state.s),
+                         theta_allowed_deg=math.degrees(self._theta_allowed))
+        self._phase = Phase.BRAKING
+
+    # -- the loop --------------------------------------------------------------------------
+    def run(self, max_time: float = 600.0) -> RunRecord:
+        st = self.robot.state()
+        t_start = self.clock.now()
+        self.history.add(st.t, st.q)
+        self._last_state_t = st.t
+        sampling = self.stage.sampling
+        self.events.emit(t_start, "start", stage=self.stage.name, sampling=sampling,
+                         s_end_deg=math.degrees(self.s_end), theta_allowed_deg=math.degrees(self._theta_allowed))
+        if sampling == "stop_and_go":
+            self._phase = Phase.CAPTURING  # the first samples are taken at the start pose
+            self._frames_in_step = 0
+        else:
+            self._target_s = self.s_end
+        while True:
+            now = self.clock.now()
+            if now - t_start > max_time:
+                self._fault(now, "timeout", f"run exceeded {max_time} s")
+            st = self.robot.state()
+            if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
+                self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state")
+            if st.t > self._last_state_t:
+                self.history.add(st.t, st.q)
+            self._last_state_t = st.t
+            self._collect(now)
+            ps = self.follower.state
+            s = ps.s
+            at_rest = abs(ps.ds) < _REST_V and abs(ps.dds) < _REST_V
+
+            if self._phase is Phase.HALTED:
+                break
+            if self._phase is Phase.BRAKING and at_rest:
+                self._phase = Phase.HALTED
+                self.record.halt_s = s
+                self.events.emit(now, "halted", s_deg=math.degrees(s), reason=self.record.halt_reason)
+                break
+
+            if sampling == "stop_and_go":
+                self._tick_stop_and_go(now, s, at_rest)
+            else:
+                self._tick_continuous(now, s, at_rest)
+
+            brake = self._phase is Phase.BRAKING
+            target = None if brake else (self._target_s if self._phase is Phase.MOVING else None)
+            if not brake and self._phase is Phase.MOVING:
+                ps = self.follower.state
+                d = self.gate.update(ps, self._theta_allowed, next_state=self.follower.peek(target))
+                if d.brake:
+                    self._halt(now, f"gate:{d.reason}")
+                    brake, target = True, None
+            try:
+                q_cmd = self.follower.tick(target, brake)[3]
+            except MotionRejected as exc:
+                self._fault(now, "motion_rejected", str(exc))
+                q_cmd = self.robot.state().q  # hold: on hardware the robot's own reflexes take over
+                self._phase = Phase.HALTED
+                self.record.halt_s = self.follower.state.s
+            self.robot.command(q_cmd)
+            executed = self.robot.state()
+            self.record.trajectory_t.append(executed.t)
+            self.record.trajectory_s.append(self.follower.state.s)
+            self.record.trajectory_q.append(np.array(executed.q, float))
+        return self.record
+
+    def _tick_stop_and_go(self, now: float, s: float, at_rest: bool) -> None:
+        st = self.stage
+        if self._phase is Phase.MOVING and at_rest and abs(s - self._target_s) < 1e-9:
+            self._phase = Phase.CAPTURING
+            self._frames_in_step = 0
+            self._next_frame_t = now
+        if self._phase is Phase.CAPTURING:
+            if self._frames_in_step < st.frames_per_step and now >= self._next_frame_t:
+                if not self._grab(now):
+                    return
+                self._frames_in_step += 1
+                self._next_frame_t = now + self.frame_period
+            if self._frames_in_step >= st.frames_per_step:
+                self._phase = Phase.WAITING
+        if self._phase is Phase.WAITING and self._awaiting.get(self._step, 0) == 0:
+            self._update_predictor(now, self._step)
+            nxt = min(s + st.step, self.s_end)
+            if nxt - s < 1e-9:
+                self._halt(now, "end_of_path")
+            elif nxt > self._theta_allowed + 1e-12:
+                self._halt(now, "boundary")  # next step not permitted: stay stopped (latched)
+            else:
+                self._step += 1
+                self._target_s = nxt
+                self._phase = Phase.MOVING
+                self.events.emit(now, "step", step=self._step, target_deg=math.degrees(nxt))
+
+    def _tick_continuous(self, now: float, s: float, at_rest: bool) -> None:
+        st = self.stage
+        if self._phase is not Phase.MOVING:
+            return
+        if at_rest and s >= self._target_s - 1e-9 and self._awaiting.get(self._step, 0) == 0:
+            self._halt(now, "end_of_path")
+            return
+        if now >= self._next_frame_t:
+            if not self._grab(now):
+                return
+            self._next_frame_t = now + self.frame_period
+        elif self._last_frame_t is not None and now - self._last_frame_t > 3 * self.frame_period + st.frame_timeout:
+            self._fault(now, "frame_stall", f"no frame for {(now - self._last_frame_t) * 1000:.0f} ms")
+            return
+        # Close a step once the robot has progressed theta_b past its start and its frames are in.
+        step_end = (self._step + 1) * st.step
+        if s >= step_end and self._step not in self._closing:
+            self._closing.add(self._step)
+        for k in sorted(self._closing):
+            if self._awaiting.get(k, 0) == 0:
+                self._closing.discard(k)
+                self._update_predictor(now, k)
+        if s >= step_end:
+            self._step += 1

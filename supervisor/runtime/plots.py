@@ -1,0 +1,66 @@
+"""Dry-run timeline plot: path angle over time with predictions and brakes; n_i vs angle with fits."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from supervisor.runtime.loop import RunRecord
+
+
+def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dict[str, Any], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from supervisor.prediction.emg import emg
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 8))
+    t = np.asarray(record.trajectory_t)
+    ax1.plot(t, np.degrees(record.trajectory_s), "k-", lw=1.2, label="path angle s")
+    if record.theta_p_history:
+        th = np.array(record.theta_p_history, float)
+        ax1.step(th[:, 0], np.degrees(th[:, 1]), where="post", color="tab:blue", label="theta_p (predicted)")
+        ax1.step(th[:, 0], np.degrees(th[:, 2]), where="post", color="tab:orange", ls="--", label="theta_allowed")
+    if oracle is not None:
+        for name, b in oracle["boundary"].items():
+            ax1.axhline(math.degrees(b), ls=":", color="tab:red" if "4mm" in name else "tab:purple",
+                        label=f"actual boundary {name}")
+    if math.isfinite(record.halt_s):
+        ax1.axhline(math.degrees(record.halt_s), color="k", ls="-.", lw=0.8, label="halt")
+    ax1.set_xlabel("time [s]")
+    ax1.set_ylabel("angle [deg]")
+    ax1.set_title(f"{summary.get('scene')} / {summary.get('stage')} ({summary.get('sampling')}): "
+                  f"halt {summary.get('halt_angle_deg', float('nan')):.1f} deg, {record.halt_reason}")
+    ax1.legend(fontsize=7, loc="lower right")
+    ax1.grid(alpha=0.3)
+
+    if record.samples:
+        ax2.plot([math.degrees(s.theta) for s in record.samples], [s.n_inliers for s in record.samples], "o",
+                 ms=3, color="tab:blue", label="n_i (run)")
+    if oracle is not None:
+        ax2.plot(np.degrees(oracle["theta"]), oracle["n_mean"], "s", ms=3, color="tab:gray", alpha=0.6,
+                 label="n_i (oracle sweep, mean)")
+    x = np.linspace(0.0, max(45.0, summary.get("halt_angle_deg") or 0.0), 300)
+    fits = [f for f in record.fits if f["valid"] and f["params"] is not None]
+    for k, f in enumerate(fits):
+        last = k == len(fits) - 1
+        ax2.plot(x, emg(x, *f["params"]), color="tab:green", alpha=1.0 if last else 0.25, lw=1.5 if last else 0.8,
+                 label="EMG fit (latest)" if last else None)
+    ax2.axhline(summary.get("n_t", 0), color="tab:red", ls="--", lw=0.8, label="n_t")
+    ax2.set_xlabel("viewing angle theta [deg]")
+    ax2.set_ylabel("RANSAC inliers n_i")
+    ax2.set_ylim(bottom=0)
+    ax2.legend(fontsize=7)
+    ax2.grid(alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,175 @@
+"""Stages: named settings for predictor, gate and motion, and switching between them safely.
+
+A `stages:` mapping in the configuration YAML (degrees/ms at this edge, SI in
+`StageConfig`):
+
+    stages:
+      paper:
+        predictor: long_range        # long_range | next_step | static
+        variant: paper               # a name in the prediction registry (checked there)
+        n_t: 15                      # observations the model is fitted on
+        step_deg: 1.5                # theta_b: progress between updates
+        margin_deg: 0.5              # theta_allowed = min(theta_p - margin, hard_limit)
+        hard_limit_deg: 60
+        sampling: stop_and_go        # stop_and_go | continuous
+        frames_per_step: 5
+        warmup_steps: 4              # steps allowed before a valid model must exist
+        frame_timeout_ms: 200
+        pose_gap_ms: 20
+        limits: {velocity_deg_s: 10, acceleration_deg_s2: 20, jerk_deg_s3: 200}
+
+`StageSwitcher` applies a stage change made while moving with the stricter of
+the old and new limits (and angle bounds) until the path coordinate is at rest.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+
+from supervisor.errors import ConfigError
+from supervisor.motion.braking import PathLimits, PathState
+from supervisor.yamlschema import Node, load_yaml
+
+PREDICTORS = ("long_range", "next_step", "static")
+SAMPLING = ("stop_and_go", "continuous")
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
+
+
+@dataclass(frozen=True)
+class StageConfig:
+    """One stage, in SI units (angles in rad, times in s)."""
+
+    name: str
+    predictor: str
+    variant: str
+    n_t: int
+    step: float  # theta_b, rad
+    margin: float  # rad
+    hard_limit: float  # rad
+    sampling: str
+    frames_per_step: int
+    limits: PathLimits  # rad/s, rad/s^2, rad/s^3
+    warmup_steps: int
+    frame_timeout: float  # s
+    pose_gap: float  # s
+
+    def theta_allowed(self, theta_p: float | None) -> float:
+        """min(theta_p - margin, hard_limit); the hard limit alone without a prediction."""
+        if theta_p is None:
+            return self.hard_limit
+        return min(theta_p - self.margin, self.hard_limit)
+
+
+def _limits(n: Node) -> PathLimits:
+    out = PathLimits(
+        velocity=math.radians(n.number("velocity_deg_s", 10.0, min=0.0, max=180.0, min_exclusive=True)),
+        acceleration=math.radians(n.number("acceleration_deg_s2", 20.0, min=0.0, max=3600.0, min_exclusive=True)),
+        jerk=math.radians(n.number("jerk_deg_s3", 200.0, min=0.0, max=360000.0, min_exclusive=True)),
+    )
+    n.done()
+    return out
+
+
+def parse_stage(name: str, n: Node) -> StageConfig:
+    """Build one StageConfig from its mapping; every error names file and dotted key."""
+    if not _NAME.match(name):
+        raise ConfigError(n.file, n.path, "stage names must start with a letter and use only letters, "
+                          f"digits, '_' and '-', got {name!r}")
+    stage = StageConfig(
+        name=name,
+        predictor=n.string("predictor", choices=PREDICTORS),
+        variant=n.string("variant"),
+        n_t=n.integer("n_t", 15, min=4, max=1000),
+        step=math.radians(n.number("step_deg", 1.5, min=0.0, max=30.0, min_exclusive=True)),
+        margin=math.radians(n.number("margin_deg", 0.5, min=0.0, max=30.0)),
+        hard_limit=math.radians(n.number("hard_limit_deg", 60.0, min=0.0, max=180.0, min_exclusive=True)),
+        sampling=n.string("sampling", "stop_and_go", choices=SAMPLING),
+        frames_per_step=n.integer("frames_per_step", 5, min=1, max=1000),
+        limits=_limits(n.child("limits", {})),
+        warmup_steps=n.integer("warmup_steps", 4, min=0, max=1000),
+        frame_timeout=n.number("frame_timeout_ms", 200.0, min=0.0, max=60000.0, min_exclusive=True) / 1000.0,
+        pose_gap=n.number("pose_gap_ms", 20.0, min=0.0, max=10000.0, min_exclusive=True) / 1000.0,
+    )
+    n.done()
+    return stage
+
+
+def parse_stages(root: Node, key: str = "stages") -> Mapping[str, StageConfig]:
+    """The stages under `key` of `root` (at least one), as a read-only name -> StageConfig mapping."""
+    out: dict[str, StageConfig] = {}
+    for name, child in root.children(key):
+        out[name] = parse_stage(name, child)
+    if not out:
+        raise root.error(key, "at least one stage is required")
+    return MappingProxyType(out)
+
+
+def load_stages(path: str | Path) -> Mapping[str, StageConfig]:
+    """Read a YAML file whose top level holds a `stages:` mapping (other top-level keys are ignored)."""
+    root = Node(load_yaml(path), path)
+    return parse_stages(root)
+
+
+class StageSwitcher:
+    """The active stage and the motion limits in force, with safe switching.
+
+    `request(name)` switches at once when the path is at rest; while moving, the
+    effective limits and angle bounds are the stricter of the old and new stage
+    until `update()` sees the coordinate at rest (ds == 0 and dds == 0).
+    """
+
+    def __init__(self, stages: Mapping[str, StageConfig], initial: str) -> None:
+        self.stages = stages
+        self._stage = self._get(initial)
+        self._limits = self._stage.limits
+        self._old: list[StageConfig] = []  # stages whose bounds still apply until rest
+
+    def _get(self, name: str) -> StageConfig:
+        try:
+            return self.stages[name]
+        except KeyError:
+            known = ", ".join(sorted(self.stages)) or "none"
+            raise ConfigError(None, "stage", f"unknown stage {name!r} (known: {known})") from None
+
+    @property
+    def stage(self) -> StageConfig:
+        """The stage requested last (its predictor settings apply immediately)."""
+        return self._stage
+
+    @property
+    def limits(self) -> PathLimits:
+        """The motion limits in force now."""
+        return self._limits
+
+    @property
+    def in_transition(self) -> bool:
+        return bool(self._old)
+
+    def request(self, name: str, state: PathState) -> PathLimits:
+        """Switch to stage `name`; returns the limits in force from now on."""
+        new = self._get(name)
+        at_rest = state.ds == 0.0 and state.dds == 0.0
+        if at_rest:
+            self._old = []
+            self._limits = new.limits
+        else:
+            self._old.append(self._stage)
+            self._limits = self._limits.stricter(new.limits)
+        self._stage = new
+        return self._limits
+
+    def update(self, state: PathState) -> PathLimits:
+        """Call every tick; ends a transition once the coordinate is at rest."""
+        if self._old and state.ds == 0.0 and state.dds == 0.0:
+            self._old = []
+            self._limits = self._stage.limits
+        return self._limits
+
+    def theta_allowed(self, theta_p: float | None) -> float:
+        """Allowed angle of the current stage, the strictest over a pending transition."""
+        return min(s.theta_allowed(theta_p) for s in (self._stage, *self._old))
