@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 run: $(STAMP)
-	$(VENV)/bin/supervisor demo -o $(OUT)/demo
+	$(VENV)/bin/supervisor dry-run -o $(OUT)/dry-run
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -105,6 +105,7 @@ class SupervisorLoop:
         self.record = RunRecord()
         self._theta_allowed = self._warmup_allowance()
         self._valid_prediction = False
+        self._allow_next = True  # the predictor's next-step rule (warm-up: allowed)
         self._step = 0
         self._frames_in_step = 0
         self._awaiting: dict[int, int] = {}  # step -> localizations outstanding
@@ -128,16 +129,16 @@ class SupervisorLoop:
         if pred is not None and pred.valid:
             self._valid_prediction = True
             allowed = min(pred.boundary - self.stage.margin, self.stage.hard_limit)
-            if pred.allow_next is False:
-                allowed = min(allowed, s_now)
             self._theta_allowed = allowed
+            self._allow_next = pred.allow_next is not False
             self.record.theta_p_history.append((t, pred.boundary, allowed))
         else:
             # No valid model: within the warm-up allowance keep it, beyond it stop now.
             warm = self._warmup_allowance()
             self._theta_allowed = warm if (not self._valid_prediction and s_now < warm) else min(s_now, warm)
             if self._valid_prediction:
-                self._theta_allowed = s_now
+                self._theta_allowed = s_now  # the model was valid and is not any more: no further motion
+            self._allow_next = s_now + self.stage.step <= self._theta_allowed + 1e-12
             self.record.theta_p_history.append((t, math.nan, self._theta_allowed))
         self.events.emit(t, "prediction", valid=bool(pred is not None and pred.valid),
                          theta_p_deg=math.degrees(pred.boundary) if pred is not None and pred.valid else None,
@@ -305,7 +306,7 @@ class SupervisorLoop:
             nxt = min(s + st.step, self.s_end)
             if nxt - s < 1e-9:
                 self._halt(now, "end_of_path")
-            elif nxt > self._theta_allowed + 1e-12:
+            elif not self._allow_next or nxt > self._theta_allowed + 1e-12:
                 self._halt(now, "boundary")  # next step not permitted: stay stopped (latched)
             else:
                 self._step += 1
@@ -314,26 +315,36 @@ class SupervisorLoop:
                 self.events.emit(now, "step", step=self._step, target_deg=math.degrees(nxt))
 
     def _tick_continuous(self, now: float, s: float, at_rest: bool) -> None:
+        """Predict while moving: frames at the camera rate, a predictor update per theta_b of progress.
+
+        The motion target is `min(s_end, theta_allowed)`: the robot runs toward the
+        allowed angle and, when a new prediction raises it, continues without stopping.
+        If it comes to rest there with nothing left to localize, the boundary is reached.
+        """
         st = self.stage
         if self._phase is not Phase.MOVING:
             return
-        if at_rest and s >= self._target_s - 1e-9 and self._awaiting.get(self._step, 0) == 0:
-            self._halt(now, "end_of_path")
-            return
-        if now >= self._next_frame_t:
+        if now >= self._next_frame_t and not at_rest:
             if not self._grab(now):
                 return
             self._next_frame_t = now + self.frame_period
-        elif self._last_frame_t is not None and now - self._last_frame_t > 3 * self.frame_period + st.frame_timeout:
+        elif not at_rest and self._last_frame_t is not None and \
+                now - self._last_frame_t > 3 * self.frame_period + st.frame_timeout:
             self._fault(now, "frame_stall", f"no frame for {(now - self._last_frame_t) * 1000:.0f} ms")
             return
-        # Close a step once the robot has progressed theta_b past its start and its frames are in.
+        # Close a step once the robot has progressed theta_b past its start (its frames are all submitted).
         step_end = (self._step + 1) * st.step
-        if s >= step_end and self._step not in self._closing:
+        if s >= step_end - 1e-9 or (at_rest and self._awaiting.get(self._step, 0) > 0):
             self._closing.add(self._step)
+            self._step += 1
         for k in sorted(self._closing):
             if self._awaiting.get(k, 0) == 0:
                 self._closing.discard(k)
                 self._update_predictor(now, k)
-        if s >= step_end:
-            self._step += 1
+        if not self._allow_next:
+            self._halt(now, "boundary")  # the next-step rule withdrew its permit: brake now
+            return
+        self._target_s = min(self.s_end, self._theta_allowed)
+        idle = at_rest and not self._closing and not self.worker.busy
+        if idle and s >= self._target_s - 1e-9:
+            self._halt(now, "end_of_path" if s >= self.s_end - 1e-9 else "boundary")
