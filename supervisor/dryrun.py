@@ -77,10 +77,15 @@ def _model_images(cfg: Config, sim: SimRobot, camera: SimCamera, T_base_cam0: np
     return shots
 
 
-def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print) -> dict[str, Any]:
-    """Run one dry-run trial; write its outputs to `out` (if given) and return the summary."""
+def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print, *,
+                wrap_camera=None, wrap_robot=None, stage_override: StageConfig | None = None) -> dict[str, Any]:
+    """Run one dry-run trial; write its outputs to `out` (if given) and return the summary.
+
+    `wrap_camera` / `wrap_robot` (tests: fault injection) wrap the drivers the loop
+    uses, after the model images were taken; `stage_override` replaces the stage.
+    """
     wall0 = time.monotonic()
-    stage: StageConfig = cfg.stage(spec.stage)
+    stage: StageConfig = stage_override or cfg.stage(spec.stage)
     if spec.sampling is not None:
         stage = dataclasses.replace(stage, sampling=spec.sampling)
     scene = load_scene(spec.scene or cfg.scene)
@@ -103,7 +108,9 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print)
         events.emit(clock.now(), "config", sha256=cfg.sha256, file=str(cfg.file), stage=stage.name)
         follower = PathFollower(path, stage.limits, kin, sim.state().q, robot.control_period)
         predictor = make_predictor(stage.predictor, stage.variant, stage.n_t, stage.step, hard_limit=stage.hard_limit)
-        loop = SupervisorLoop(robot=robot, camera=camera, worker=InlineWorker(Localizer(model, cfg.localization)),
+        loop_robot = wrap_robot(robot) if wrap_robot else robot
+        loop_camera = wrap_camera(camera) if wrap_camera else camera
+        loop = SupervisorLoop(robot=loop_robot, camera=loop_camera, worker=InlineWorker(Localizer(model, cfg.localization)),
                               predictor=predictor, stage=stage, follower=follower, kin=kin, T_base_cam_model=T0,
                               T_cam_target_model=model.T_cam0_target, clock=clock, events=events,
                               s_end=stage.hard_limit, frame_period=cfg.camera.frame_period_s)

@@ -56,6 +56,14 @@ class _Samples:
         return max(self.xs) if self.xs else 0.0
 
 
+def _allow(boundary: float, x_now: float, step: float, x_max: float) -> bool:
+    """The next-step rule: theta_p > theta_i + theta_b. A boundary at the range end means the curve
+    never falls to n_t there: the last step up to (and including) the range end is allowed."""
+    if boundary >= x_max - 1e-12:
+        return x_now + step <= x_max + 1e-12
+    return boundary > x_now + step - 1e-12
+
+
 class _FittingPredictor:
     """Shared machinery of the EMG-based predictors."""
 
@@ -85,9 +93,10 @@ class _FittingPredictor:
         x_now = self.samples.x_now
         if not mf.ok:
             return Prediction(False, math.nan, False, f"no valid model: {mf.fit.reason}", x_now, mf.fit)
-        b_fit = mf.boundary(self.n_t, float(self.axis.to_fit(x_now)), float(self.axis.to_fit(self.x_max)))
+        x_max_fit = float(self.axis.to_fit(self.x_max))
+        b_fit = mf.boundary(self.n_t, float(self.axis.to_fit(x_now)), x_max_fit)
         b = self.axis.to_si(b_fit)
-        return Prediction(True, b, b > x_now + self.step - 1e-12, "ok", x_now, mf.fit, mf.fit.params)
+        return Prediction(True, b, _allow(b, x_now, self.step, self.x_max), "ok", x_now, mf.fit, mf.fit.params)
 
 
 class NextStepPredictor(_FittingPredictor):
@@ -127,8 +136,8 @@ class LongRangePredictor(_FittingPredictor):
         if not f.valid:
             self.last = Prediction(False, math.nan, False, f.reason, x_now, f.fit)
         else:
-            self.last = Prediction(True, f.boundary, f.boundary > x_now + self.step - 1e-12, "ok", x_now, f.fit,
-                                   f.params)
+            self.last = Prediction(True, f.boundary, _allow(f.boundary, x_now, self.step, self.x_max), "ok", x_now,
+                                   f.fit, f.params)
         return self.last
 
 

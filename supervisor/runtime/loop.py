@@ -128,7 +128,10 @@ class SupervisorLoop:
         s_now = self.follower.state.s
         if pred is not None and pred.valid:
             self._valid_prediction = True
-            allowed = min(pred.boundary - self.stage.margin, self.stage.hard_limit)
+            if pred.boundary >= self.stage.hard_limit - 1e-12:
+                allowed = self.stage.hard_limit  # no failure predicted inside the range: the margin has no object
+            else:
+                allowed = min(pred.boundary - self.stage.margin, self.stage.hard_limit)
             self._theta_allowed = allowed
             self._allow_next = pred.allow_next is not False
             self.record.theta_p_history.append((t, pred.boundary, allowed))
