@@ -14,11 +14,10 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import OptimizeWarning, brentq, curve_fit
+from scipy.optimize import brentq
 from scipy.special import log_ndtr
 
 _LOG_HALF = math.log(0.5)
@@ -34,6 +33,19 @@ def log_emg(x: np.ndarray | float, alpha: float, K: float, mu: float) -> np.ndar
 def emg(x: np.ndarray | float, alpha: float, K: float, mu: float) -> np.ndarray:
     """f(x), numerically stable for all K > 0."""
     return np.exp(log_emg(x, alpha, K, mu))
+
+
+def emg_jacobian(x: np.ndarray, alpha: float, K: float, mu: float) -> np.ndarray:
+    """d f / d(alpha, K, mu) as an (N, 3) array, from the log-space derivatives (stable like `emg`).
+
+    With z = x - mu, w = z - 1/K and r(w) = phi(w)/Phi(w) (inverse Mills ratio):
+    dlogf/dalpha = 1/alpha, dlogf/dK = -1/K - 1/K^3 + z/K^2 + r/K^2, dlogf/dmu = 1/K - r.
+    """
+    z = np.asarray(x, dtype=float) - mu
+    w = z - 1.0 / K
+    r = np.exp(-0.5 * w * w - 0.5 * math.log(2.0 * math.pi) - log_ndtr(w))
+    f = emg(x, alpha, K, mu)
+    return np.column_stack([f / alpha, f * (-1.0 / K - 1.0 / K**3 + z / K**2 + r / K**2), f * (1.0 / K - r)])
 
 
 @dataclass(frozen=True)
@@ -118,8 +130,7 @@ def initial_guesses(x: np.ndarray, n: np.ndarray, bounds: Bounds = Bounds()) -> 
 
 
 def fit_emg(x: np.ndarray, n: np.ndarray, *, p0: tuple[float, float, float] | None = None,
-            bounds: Bounds = Bounds(), max_nfev: int = 400, time_budget_s: float = 0.25,
-            sigma: np.ndarray | None = None) -> FitResult:
+            bounds: Bounds = Bounds(), max_nfev: int = 400, time_budget_s: float = 0.25) -> FitResult:
     """Bounded non-linear least squares of the scaled EMG to samples (x in fit units). Never raises."""
     t0 = time.perf_counter()
     x = np.asarray(x, dtype=float).ravel()
@@ -139,45 +150,78 @@ def fit_emg(x: np.ndarray, n: np.ndarray, *, p0: tuple[float, float, float] | No
     if np.ptp(n) == 0:
         return fail("constant n_i: no decay to model")
     starts = [p0] if p0 is not None else initial_guesses(x, n, bounds)
-    lo, hi = np.array(bounds.lower()), np.array(bounds.upper())
-    calls = [0]
-    deadline = t0 + time_budget_s
+    out = solve_lsq(lambda p: emg(x, *p) - n, lambda p: emg_jacobian(x, *p), starts, bounds, max_nfev,
+                    t0 + time_budget_s)
+    if isinstance(out, str):
+        return fail(out)
+    popt, pcov, nfev = out
+    rmse = float(np.sqrt(np.mean((emg(x, *popt) - n) ** 2)))
+    return FitResult(True, (float(popt[0]), float(popt[1]), float(popt[2])), pcov, "ok", nfev, rmse,
+                     time.perf_counter() - t0, len(x))
 
-    def model(xx: np.ndarray, a: float, k: float, m: float) -> np.ndarray:
-        calls[0] += 1
+
+def solve_lsq(resid, jac, starts, bounds: Bounds, max_nfev: int, deadline: float):
+    """Multi-start Levenberg-Marquardt (MINPACK) for the 3 EMG parameters -> (params, covariance, nfev) or a
+    reason string. Solved in (log alpha, log K, mu) so alpha, K stay positive without a bounded (slower)
+    method; a solution outside `bounds`, with a singular or non-finite covariance, does not count.
+    The covariance is curve_fit's: inv(J^T J) * SSR / (N - 3).
+    """
+    from scipy.optimize import least_squares
+
+    lo, hi = np.array(bounds.lower()), np.array(bounds.upper())
+    to_p = lambda u: np.array([math.exp(u[0]), math.exp(u[1]), u[2]])  # noqa: E731
+    chain = lambda p: np.array([p[0], p[1], 1.0])  # noqa: E731  d p / d u
+
+    def r_u(u: np.ndarray) -> np.ndarray:
         if time.perf_counter() > deadline:
             raise TimeoutError
-        return emg(xx, a, k, m)
+        with np.errstate(all="ignore"):
+            return resid(to_p(np.clip(u, -700, 700)))
 
-    best: tuple[float, np.ndarray, np.ndarray] | None = None
-    last_reason = "no start point"
+    def j_u(u: np.ndarray) -> np.ndarray:
+        p = to_p(np.clip(u, -700, 700))
+        with np.errstate(all="ignore"):
+            return jac(p) * chain(p)
+
+    best = None
+    reason = "no start point"
+    nfev = 0
     for start in starts:
-        start = np.clip(np.asarray(start, float), lo + 1e-9 * np.abs(lo), hi - 1e-9 * np.abs(hi))
+        start = np.clip(np.asarray(start, float), lo, hi)
+        u0 = np.array([math.log(start[0]), math.log(start[1]), start[2]])
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", OptimizeWarning)
-                warnings.simplefilter("ignore", RuntimeWarning)
-                popt, pcov = curve_fit(model, x, n, p0=start, bounds=(lo, hi), method="trf", max_nfev=max_nfev,
-                                       sigma=sigma)
+            sol = least_squares(r_u, u0, jac=j_u, method="lm", max_nfev=max_nfev)
         except TimeoutError:
-            last_reason = f"time budget {time_budget_s * 1000:.0f} ms exceeded"
+            reason = "time budget exceeded"
             break
-        except (RuntimeError, ValueError) as exc:  # no convergence within max_nfev, or bad numbers
-            last_reason = f"no convergence: {exc}"
+        except (ValueError, FloatingPointError) as exc:
+            reason = f"no convergence: {exc}"
             continue
-        if not (np.all(np.isfinite(popt)) and np.all(np.isfinite(pcov))):
-            last_reason = "infinite or NaN covariance: parameters not determined by the samples"
+        nfev += sol.nfev
+        p = to_p(sol.x) if np.all(np.isfinite(sol.x)) and np.all(np.abs(sol.x[:2]) < 700) else None
+        if p is None or not sol.success:
+            reason = f"no convergence: {sol.message}"
             continue
-        resid = (emg(x, *popt) - n) / (1.0 if sigma is None else sigma)
-        cost = float(np.sum(resid * resid))
-        if math.isfinite(cost) and (best is None or cost < best[0]):
-            best = (cost, popt, pcov)
+        if np.any(p < lo) or np.any(p > hi):
+            reason = f"solution outside the parameter bounds ({p.round(4).tolist()})"
+            continue
+        r = resid(p)
+        cost = float(r @ r)
+        if not math.isfinite(cost) or (best is not None and cost >= best[0]):
+            continue
+        J = jac(p)
+        dof = len(r) - 3
+        try:
+            cov = np.linalg.inv(J.T @ J) * (cost / dof) if dof > 0 else np.full((3, 3), np.inf)
+        except np.linalg.LinAlgError:
+            cov = np.full((3, 3), np.inf)
+        if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
+            reason = "infinite or NaN covariance: parameters not determined by the samples"
+            continue
+        best = (cost, p, cov)
     if best is None:
-        return fail(last_reason, calls[0])
-    _, popt, pcov = best
-    rmse = float(np.sqrt(np.mean((emg(x, *popt) - n) ** 2)))
-    return FitResult(True, (float(popt[0]), float(popt[1]), float(popt[2])), pcov, "ok", calls[0], rmse,
-                     time.perf_counter() - t0, len(x))
+        return reason
+    return best[1], best[2], nfev
 
 
 def peak_location(alpha: float, K: float, mu: float, x_max: float) -> float:

@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import OptimizeWarning, curve_fit
 
-from supervisor.prediction.emg import Bounds, FitResult, boundary, emg, fit_emg, initial_guesses, log_emg
+from supervisor.prediction.emg import (Bounds, FitResult, boundary, emg, emg_jacobian, fit_emg, initial_guesses,
+                                       log_emg, solve_lsq)
 
 Z_LCB = 1.645
 
@@ -74,38 +73,20 @@ def _fit_log(x: np.ndarray, n: np.ndarray, bounds: Bounds = Bounds(), max_nfev: 
     if not base.ok:
         return base
     y = np.log1p(np.maximum(n, 0.0))
-    lo, hi = np.array(bounds.lower()), np.array(bounds.upper())
-    deadline = t0 + time_budget_s
-
-    def model(xx: np.ndarray, a: float, k: float, m: float) -> np.ndarray:
-        if time.perf_counter() > deadline:
-            raise TimeoutError
-        return np.logaddexp(0.0, log_emg(xx, a, k, m))  # log(1 + f)
-
-    best = None
-    for start in [base.params, *initial_guesses(x, n, bounds)]:
-        start = np.clip(np.asarray(start, float), lo + 1e-9 * np.abs(lo), hi - 1e-9 * np.abs(hi))
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", OptimizeWarning)
-                warnings.simplefilter("ignore", RuntimeWarning)
-                popt, pcov = curve_fit(model, x, y, p0=start, bounds=(lo, hi), method="trf", max_nfev=max_nfev)
-        except TimeoutError:
-            break
-        except (RuntimeError, ValueError):
-            continue
-        if not (np.all(np.isfinite(popt)) and np.all(np.isfinite(pcov))):
-            continue
-        cost = float(np.sum((model(x, *popt) - y) ** 2)) if time.perf_counter() <= deadline else math.inf
-        if math.isfinite(cost) and (best is None or cost < best[0]):
-            best = (cost, popt, pcov)
-    if best is None:
-        return FitResult(False, None, None, "log-space fit did not converge", base.nfev, math.nan,
-                         time.perf_counter() - t0, len(x))
-    _, popt, pcov = best
+    out = solve_lsq(lambda p: np.logaddexp(0.0, log_emg(x, *p)) - y, lambda p: _log1p_jacobian(x, *p),
+                    [base.params, *initial_guesses(x, n, bounds)], bounds, max_nfev, t0 + time_budget_s)
+    if isinstance(out, str):
+        return FitResult(False, None, None, f"log-space fit: {out}", base.nfev, math.nan, time.perf_counter() - t0,
+                         len(x))
+    popt, pcov, nfev = out
     rmse = float(np.sqrt(np.mean((emg(x, *popt) - n) ** 2)))
-    return FitResult(True, (float(popt[0]), float(popt[1]), float(popt[2])), pcov, "ok", base.nfev, rmse,
+    return FitResult(True, (float(popt[0]), float(popt[1]), float(popt[2])), pcov, "ok", base.nfev + nfev, rmse,
                      time.perf_counter() - t0, len(x))
+
+
+def _log1p_jacobian(x: np.ndarray, a: float, k: float, m: float) -> np.ndarray:
+    """d log(1 + f) / d params = (df / d params) / (1 + f)."""
+    return emg_jacobian(x, a, k, m) / (1.0 + emg(x, a, k, m))[:, None]
 
 
 VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb")
