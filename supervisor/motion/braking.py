@@ -60,6 +60,18 @@ class BrakingModel:
         p, _, _ = self._traj.at_time(self._traj.duration)
         return float(p[0]), float(self._traj.duration)
 
+    def furthest(self, state: PathState) -> tuple[float, float]:
+        """(furthest position reached while braking from `state`, final rest position).
+
+        Braking from a decelerating state can undershoot the velocity (it crosses zero
+        before the acceleration is back to zero), so the path coordinate peaks before it
+        comes to rest: the gate must compare the peak, not the rest position, with the
+        allowed angle.
+        """
+        final, _ = self.stop_position(state)
+        peak = max(final, float(self._traj.position_extrema[0].max))
+        return peak, final
+
     def trajectory(self, state: PathState) -> Trajectory:
         """The braking trajectory itself (a copy safe to keep)."""
         self.stop_position(state)

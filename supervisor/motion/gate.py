@@ -116,10 +116,10 @@ class Gate:
             next_state = self.predict(state) if self.predict else conservative_next(state, self.braking, self.dt)
         if not all(math.isfinite(v) for v in (next_state.s, next_state.ds, next_state.dds)):
             return self.trip("invalid", None, theta_allowed)
-        stop_next, _ = self.braking.stop_position(next_state)
-        if stop_next <= theta_allowed + TOLERANCE:
+        peak_next, stop_next = self.braking.furthest(next_state)
+        if peak_next <= theta_allowed + TOLERANCE and next_state.s <= theta_allowed + TOLERANCE:
             return GateDecision(False, stop_next, False, "clear", theta_allowed)
-        stop_now, _ = self.braking.stop_position(state)
-        reason = "boundary" if stop_now <= theta_allowed + TOLERANCE else "past"
+        peak_now, stop_now = self.braking.furthest(state)
+        reason = "boundary" if peak_now <= theta_allowed + TOLERANCE else "past"
         self._latch = GateDecision(True, stop_now, True, reason, theta_allowed)
         return self._latch
