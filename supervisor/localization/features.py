@@ -87,6 +87,9 @@ class DescriptorMatcher:
         self._bf = None
         if self.n_train >= 2:
             if kind == "flann":
+                # The randomised KD-trees draw from OpenCV's global RNG: seed it so the same model gives
+                # the same index (and the same n_i) whatever ran before in this process.
+                cv2.setRNGSeed(0x5EED)
                 self._index = cv2.flann_Index(self._train, {"algorithm": _FLANN_INDEX_KDTREE, "trees": int(trees)})
             else:
                 self._bf = cv2.BFMatcher(cv2.NORM_L2, crossCheck=False)
