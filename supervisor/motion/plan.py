@@ -114,12 +114,13 @@ def _solve(kin: KinematicsLike, path: PathLike, s: float, seed: np.ndarray, fram
 
 
 def _limits_input(inp: InputParameter, state: PathState, limits: PathLimits) -> None:
-    """Fill current state and limits (relaxed to the current |v|, |a| so Ruckig accepts any reachable state)."""
+    """Fill current state and limits. Ruckig accepts a current |v| or |a| above the (new, stricter)
+    limits and first brings them back within, so the limits are passed as they are."""
     inp.current_position = [state.s]
     inp.current_velocity = [state.ds]
     inp.current_acceleration = [state.dds]
-    inp.max_velocity = [max(limits.velocity, abs(state.ds))]
-    inp.max_acceleration = [max(limits.acceleration, abs(state.dds))]
+    inp.max_velocity = [limits.velocity]
+    inp.max_acceleration = [limits.acceleration]
     inp.max_jerk = [limits.jerk]
 
 

@@ -1,0 +1,150 @@
+"""Stage YAML is parsed strictly into SI; switching while moving keeps the stricter limits until rest."""
+
+from __future__ import annotations
+
+import math
+import textwrap
+
+import pytest
+
+from supervisor.errors import ConfigError
+from supervisor.motion.braking import PathLimits, PathState
+from supervisor.stages import StageSwitcher, load_stages, parse_stages
+from supervisor.yamlschema import Node, load_yaml_text
+
+DEG = math.pi / 180.0
+
+GOOD = """
+stages:
+  fast:
+    predictor: next_step
+    variant: paper
+    n_t: 15
+    step_deg: 1.5
+    margin_deg: 0.5
+    hard_limit_deg: 45
+    sampling: stop_and_go
+    frames_per_step: 5
+    warmup_steps: 2
+    frame_timeout_ms: 200
+    pose_gap_ms: 20
+    limits: {velocity_deg_s: 10, acceleration_deg_s2: 40, jerk_deg_s3: 200}
+  slow:
+    predictor: long_range
+    variant: logfit
+    sampling: continuous
+    margin_deg: 2
+    hard_limit_deg: 30
+    limits: {velocity_deg_s: 5, acceleration_deg_s2: 60, jerk_deg_s3: 100}
+"""
+
+
+def stages_from(text: str, file: str = "test.yaml"):
+    return parse_stages(Node(load_yaml_text(text, file), file))
+
+
+def test_parse_converts_to_si_and_fills_defaults():
+    st = stages_from(GOOD)
+    fast, slow = st["fast"], st["slow"]
+    assert fast.step == pytest.approx(1.5 * DEG) and fast.margin == pytest.approx(0.5 * DEG)
+    assert fast.hard_limit == pytest.approx(45 * DEG)
+    assert fast.frame_timeout == pytest.approx(0.2) and fast.pose_gap == pytest.approx(0.02)
+    assert fast.limits == PathLimits(10 * DEG, 40 * DEG, 200 * DEG)
+    assert (fast.predictor, fast.variant, fast.n_t, fast.frames_per_step) == ("next_step", "paper", 15, 5)
+    assert slow.n_t == 15 and slow.step == pytest.approx(1.5 * DEG)  # paper defaults
+    assert slow.sampling == "continuous"
+    assert slow.theta_allowed(20 * DEG) == pytest.approx(18 * DEG)
+    assert slow.theta_allowed(40 * DEG) == pytest.approx(30 * DEG)
+    assert slow.theta_allowed(None) == pytest.approx(30 * DEG)
+    with pytest.raises(TypeError):
+        st["new"] = fast  # read-only mapping
+
+
+def test_load_stages_from_file(tmp_path):
+    p = tmp_path / "stages.yaml"
+    p.write_text(GOOD)
+    assert set(load_stages(p)) == {"fast", "slow"}
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "key", "words"),
+    [
+        ("n_t: 15", "n_t: 2", "stages.fast.n_t", "must be >= 4"),
+        ("n_t: 15", "n_t: 15.5", "stages.fast.n_t", "integer"),
+        ("step_deg: 1.5", "step_deg: .nan", "stages.fast.step_deg", "finite"),
+        ("step_deg: 1.5", "step_deg: 0", "stages.fast.step_deg", "> 0"),
+        ("margin_deg: 0.5", "margin_deg: -1", "stages.fast.margin_deg", ">= 0"),
+        ("hard_limit_deg: 45", "hard_limit_deg: no", "stages.fast.hard_limit_deg", "number"),
+        ("sampling: stop_and_go", "sampling: sometimes", "stages.fast.sampling", "continuous, stop_and_go"),
+        ("predictor: next_step", "predictor: oracle", "stages.fast.predictor", "long_range"),
+        ("frames_per_step: 5", "frames_per_step: 0", "stages.fast.frames_per_step", ">= 1"),
+        ("pose_gap_ms: 20", "pose_gap_ms: .inf", "stages.fast.pose_gap_ms", "finite"),
+        ("pose_gap_ms: 20", "pose_gap_msec: 20", "stages.fast.pose_gap_msec", "unknown key"),
+        ("velocity_deg_s: 10,", "velocity_deg_s: -10,", "stages.fast.limits.velocity_deg_s", "> 0"),
+        ("jerk_deg_s3: 200}", "jerk: 200}", "stages.fast.limits.jerk", "unknown key"),
+        ("    variant: paper\n    n_t", "    n_t", "stages.fast.variant", "required"),
+        ("  fast:", "  2fast:", "stages.2fast", "letter"),
+    ],
+)
+def test_bad_values_name_file_and_dotted_key(old, new, key, words):
+    assert old in GOOD
+    with pytest.raises(ConfigError) as err:
+        stages_from(GOOD.replace(old, new, 1), "cfg/stages.yaml")
+    e = err.value
+    assert e.file == "cfg/stages.yaml"
+    assert e.key == key
+    assert words in e.problem
+
+
+def test_duplicate_stage_and_empty_stages_are_refused():
+    dup = GOOD + textwrap.indent("fast:\n  predictor: static\n  variant: x\n", "  ")
+    with pytest.raises(ConfigError, match="duplicate key 'fast'"):
+        stages_from(dup)
+    with pytest.raises(ConfigError) as err:
+        stages_from("stages: {}\n")
+    assert err.value.key == "stages"
+
+
+REST = PathState(0.1)
+MOVING = PathState(0.1, 5 * DEG, 0.0)
+BRAKING = PathState(0.1, 0.0, -1 * DEG)  # momentarily zero velocity is not rest
+
+
+def test_switch_at_rest_applies_new_limits_at_once():
+    sw = StageSwitcher(stages_from(GOOD), "fast")
+    assert sw.request("slow", REST) == PathLimits(5 * DEG, 60 * DEG, 100 * DEG)
+    assert not sw.in_transition and sw.stage.name == "slow"
+
+
+def test_switch_while_moving_keeps_the_stricter_until_at_rest():
+    st = stages_from(GOOD)
+    sw = StageSwitcher(st, "fast")
+    stricter = PathLimits(5 * DEG, 40 * DEG, 100 * DEG)
+    assert sw.request("slow", MOVING) == stricter
+    assert sw.in_transition and sw.stage.name == "slow"
+    assert sw.update(MOVING) == stricter
+    assert sw.update(BRAKING) == stricter
+    # angle bounds: the stricter of both stages (slow's margin 2 deg and hard limit 30 deg)
+    assert sw.theta_allowed(20 * DEG) == pytest.approx(18 * DEG)
+    assert sw.update(REST) == st["slow"].limits
+    assert not sw.in_transition
+
+
+def test_switch_back_while_moving_stays_strict():
+    st = stages_from(GOOD)
+    sw = StageSwitcher(st, "fast")
+    sw.request("slow", MOVING)
+    # back to fast before coming to rest: still the stricter of everything involved
+    assert sw.request("fast", MOVING) == PathLimits(5 * DEG, 40 * DEG, 100 * DEG)
+    assert sw.theta_allowed(60 * DEG) == pytest.approx(30 * DEG)  # slow's hard limit still holds
+    assert sw.update(REST) == st["fast"].limits
+    assert sw.theta_allowed(60 * DEG) == pytest.approx(45 * DEG)
+
+
+def test_unknown_stage_is_a_config_error():
+    sw = StageSwitcher(stages_from(GOOD), "fast")
+    with pytest.raises(ConfigError, match="unknown stage 'drill'"):
+        sw.request("drill", REST)
+    assert sw.stage.name == "fast"
+    with pytest.raises(ConfigError):
+        StageSwitcher(stages_from(GOOD), "nope")
