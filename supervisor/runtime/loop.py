@@ -132,8 +132,15 @@ class SupervisorLoop:
                 allowed = self.stage.hard_limit  # no failure predicted inside the range: the margin has no object
             else:
                 allowed = min(pred.boundary - self.stage.margin, self.stage.hard_limit)
+            allow_next = pred.allow_next is not False
+            warm = self._warmup_allowance()
+            if s_now < warm - 1e-12:
+                # Warm-up: a model from a few positions is too uncertain to stop on (a cautious
+                # variant would stop at once); the configured warm-up allowance is granted regardless.
+                allowed = max(allowed, warm)
+                allow_next = allow_next or s_now + self.stage.step <= warm + 1e-12
             self._theta_allowed = allowed
-            self._allow_next = pred.allow_next is not False
+            self._allow_next = allow_next
             self.record.theta_p_history.append((t, pred.boundary, allowed))
         else:
             # No valid model: within the warm-up allowance keep it, beyond it stop now.
