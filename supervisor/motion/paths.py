@@ -43,9 +43,15 @@ class ArcPath:
     pivot: np.ndarray
     azimuth: float  # radians, direction of travel (see module docstring)
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_axis", self._compute_axis())  # per-tick pose() must not recompute it
+
     @property
     def axis(self) -> np.ndarray:
         """Unit rotation axis (base frame) through the pivot."""
+        return self._axis.copy()
+
+    def _compute_axis(self) -> np.ndarray:
         R0 = self.T_base_cam0[:3, :3]
         d0 = self.T_base_cam0[:3, 3] - self.pivot
         d0 = d0 / np.linalg.norm(d0)
@@ -57,7 +63,7 @@ class ArcPath:
 
     def pose(self, s: float) -> np.ndarray:
         """`T_base_cam` after rotating by `s` radians along the arc."""
-        R = axis_angle_to_R(self.axis, s)
+        R = axis_angle_to_R(self._axis, s)
         T0 = self.T_base_cam0
         p = self.pivot + R @ (T0[:3, 3] - self.pivot)
         return make_T(R @ T0[:3, :3], p)
