@@ -8,8 +8,8 @@ each system would produce at each operating point:
 - ``long_range[_<variant>]``: boundary from a fit on the first k positions
   (4 for arcs, 5 for lines as in the paper);
 - ``next_step[_<variant>]``: the angle where the next-step rule stops the robot
-  (refit after every position; a position without a valid model stops it once
-  two positions have been sampled);
+  (refit after every position; the first k positions are a warm-up, as in the
+  supervisor loop; after it, a position without a valid model stops it);
 - ``mlp``: the paper's MLP, long-range style (its Table I).
 
 Fits are computed once per prefix of positions and reused for every n_t.
@@ -46,7 +46,6 @@ N_T = tuple(range(4, 101))
 STATIC_ARC = tuple(np.radians(np.arange(0.0, 45.0 + 1e-9, 0.25)))
 STATIC_LINE = tuple(np.arange(0.0, 0.150 + 1e-9, 0.001))
 K_POSITIONS = {"arc": 4, "line": 5}
-MIN_POSITIONS_FOR_MODEL = 2  # next-step: before this many positions, no model is expected yet
 IMPROVED = tuple(v for v in VARIANTS if v != "paper")
 
 
@@ -105,7 +104,8 @@ def evaluate_dataset(name: str, kind: str, rows: list) -> DatasetResult:
         stops[f"long_range{suffix}"] = [axis.to_si(mf.boundary(nt, x_now, xmax_f)) if mf.ok else float(x[k_lr - 1])
                                         for nt in N_T]
         # Next step: a fit after every position, the rule applied per n_t.
-        fits = [fit_variant(variant, *prefix(k)) if k + 1 >= MIN_POSITIONS_FOR_MODEL else None for k in range(len(x))]
+        # Warm-up as in the supervisor loop: the first k positions are sampled whatever the fits say.
+        fits = [fit_variant(variant, *prefix(k)) if k + 1 >= k_lr else None for k in range(len(x))]
         step = float(np.median(np.diff(xf)))
         out = []
         for nt in N_T:
@@ -113,7 +113,7 @@ def evaluate_dataset(name: str, kind: str, rows: list) -> DatasetResult:
             for k in range(len(x)):
                 f = fits[k]
                 if f is None:
-                    continue  # warm-up: too few positions for a model
+                    continue  # warm-up
                 if not f.ok:
                     stop = float(x[k])  # no valid model -> no further motion
                     break

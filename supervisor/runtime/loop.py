@@ -143,11 +143,9 @@ class SupervisorLoop:
             self._allow_next = allow_next
             self.record.theta_p_history.append((t, pred.boundary, allowed))
         else:
-            # No valid model: within the warm-up allowance keep it, beyond it stop now.
+            # No valid model: within the warm-up allowance keep it; beyond it no further motion.
             warm = self._warmup_allowance()
-            self._theta_allowed = warm if (not self._valid_prediction and s_now < warm) else min(s_now, warm)
-            if self._valid_prediction:
-                self._theta_allowed = s_now  # the model was valid and is not any more: no further motion
+            self._theta_allowed = warm if s_now < warm - 1e-12 else s_now
             self._allow_next = s_now + self.stage.step <= self._theta_allowed + 1e-12
             self.record.theta_p_history.append((t, math.nan, self._theta_allowed))
         self.events.emit(t, "prediction", valid=bool(pred is not None and pred.valid),
