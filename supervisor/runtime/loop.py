@@ -349,9 +349,8 @@ class SupervisorLoop:
             if self._awaiting.get(k, 0) == 0:
                 self._closing.discard(k)
                 self._update_predictor(now, k)
-        if not self._allow_next:
-            self._halt(now, "boundary")  # the next-step rule withdrew its permit: brake now
-            return
+        # The next-step permit is a stop-and-go notion; moving, theta_allowed (theta_p - margin) is the
+        # bound: the robot is steered to stop there (and the gate brakes if a revision leaves no room).
         self._target_s = min(self.s_end, self._theta_allowed)
         idle = at_rest and not self._closing and not self.worker.busy
         if idle and s >= self._target_s - 1e-9:
