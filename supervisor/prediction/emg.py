@@ -203,8 +203,20 @@ def solve_lsq(resid, jac, starts, bounds: Bounds, max_nfev: int, deadline: float
             reason = f"no convergence: {sol.message}"
             continue
         if np.any(p < lo) or np.any(p > hi):
-            reason = f"solution outside the parameter bounds ({p.round(4).tolist()})"
-            continue
+            # The unconstrained optimum lies beyond a bound (typically K -> large on a curve that has
+            # hardly started to decay): take the bounded optimum instead (trust-region reflective).
+            try:
+                sol = least_squares(lambda q: r_u(np.array([math.log(q[0]), math.log(q[1]), q[2]])),
+                                    np.clip(p, lo + 1e-9 * np.abs(lo), hi - 1e-9 * np.abs(hi)),
+                                    jac=lambda q: jac(q), bounds=(lo, hi), method="trf", max_nfev=max_nfev)
+            except TimeoutError:
+                reason = "time budget exceeded"
+                break
+            nfev += sol.nfev
+            p = sol.x
+            if not np.all(np.isfinite(p)):
+                reason = "no convergence at the parameter bounds"
+                continue
         r = resid(p)
         cost = float(r @ r)
         if not math.isfinite(cost) or (best is not None and cost >= best[0]):

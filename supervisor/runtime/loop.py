@@ -143,9 +143,11 @@ class SupervisorLoop:
             self._allow_next = allow_next
             self.record.theta_p_history.append((t, pred.boundary, allowed))
         else:
-            # No valid model: within the warm-up allowance keep it; beyond it no further motion.
+            # No valid model: within the warm-up allowance keep it; beyond it, a controlled stop now
+            # (no boundary is known, so the allowance is where braking from here ends).
             warm = self._warmup_allowance()
-            self._theta_allowed = warm if s_now < warm - 1e-12 else s_now
+            stop_here = self.follower.braking.furthest(self.follower.state)[0]
+            self._theta_allowed = max(warm, stop_here) if s_now < warm - 1e-12 else stop_here
             self._allow_next = s_now + self.stage.step <= self._theta_allowed + 1e-12
             self.record.theta_p_history.append((t, math.nan, self._theta_allowed))
         self.events.emit(t, "prediction", valid=bool(pred is not None and pred.valid),
