@@ -34,6 +34,8 @@ FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, N_JOINTS + 1))
 URDF_RELPATH = Path("cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf")
 FRAMES = ("flange", "camera", "tcp")
+_RESTARTS_NEAR = 6  # ik_or_raise: restarts from perturbations of the seed (+-0.4 rad)
+_RESTARTS_ANYWHERE = 8  # ... then from uniform samples of the joint range
 
 # Franka Emika Panda datasheet limits (rad, rad/s, rad/s^2, rad/s^3).
 DATASHEET_Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
@@ -96,6 +98,45 @@ def _rigid(T: np.ndarray | None, name: str) -> pin.SE3 | None:
     return pin.SE3(T[:3, :3].copy(), T[:3, 3].copy())
 
 
+_EYE3 = np.eye(3)
+
+
+def _is_pose(T: np.ndarray, tol: float = 1e-6) -> bool:
+    """Finite 4x4 with a proper rotation block: `validate_T`'s test in a quarter of its time (IK's hot path)."""
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    if np.abs(R @ R.T - _EYE3).max() > tol:
+        return False
+    a, b, c, d, e, f, g, h, i = R.ravel().tolist()
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0  # det > 0: no reflection
+
+
+def _dls_step(J: np.ndarray, e: np.ndarray, pull: np.ndarray | None, sigma_damp: float, damping: float) -> np.ndarray:
+    """J^+ e + (I - J^+ J) pull with the SVD pseudo-inverse, damped only near a singularity (Maciejewski-Klein)."""
+    U, S, Vt = np.linalg.svd(J, full_matrices=False)
+    s_min = S[-1]
+    lam2 = 0.0 if s_min >= sigma_damp else (1.0 - (s_min / sigma_damp) ** 2) * damping**2
+    S2 = S * S + lam2
+    dq = Vt.T @ ((S / S2) * (U.T @ e))
+    if pull is not None:  # J^+ J = V diag(S^2 / (S^2 + lam2)) V^T
+        dq += pull - Vt.T @ ((S * S / S2) * (Vt @ pull))
+    return dq
+
+
+def _dls_step_at_limits(J: np.ndarray, e: np.ndarray, pull: np.ndarray | None, low: np.ndarray, high: np.ndarray,
+                        sigma_damp: float, damping: float) -> np.ndarray:
+    """`_dls_step` where joints at a limit that the step would push outward leave the solve (two passes)."""
+    free = np.ones(N_JOINTS, dtype=bool)
+    for _ in range(2):  # second pass only if a joint at its limit would be pushed outward
+        dq = _dls_step(J * free, e, None if pull is None else pull * free, sigma_damp, damping)
+        blocked = (low & (dq < 0)) | (high & (dq > 0))
+        if not np.any(blocked & free):
+            break
+        free &= ~blocked
+    return dq * free
+
+
 @dataclass(frozen=True)
 class IKResult:
     """Outcome of one IK solve; `q` is the last iterate even when `success` is False."""
@@ -146,6 +187,13 @@ class PandaKinematics:
                 self._fid[name] = model.addFrame(frame)
         self.model = model
         self.data = model.createData()
+        # Reach bound per frame: joint 2's origin does not move with q, and no frame can be farther from it
+        # than the summed lengths of the links after it (triangle inequality). Used to reject a goal at once.
+        j1, j2 = model.jointPlacements[1], model.jointPlacements[2]
+        self._shoulder = np.array(j1.translation + j1.rotation @ j2.translation)  # fixed: j2 sits on j1's axis
+        links = sum(float(np.linalg.norm(model.jointPlacements[j].translation)) for j in range(3, model.njoints))
+        self._reach = {name: links + float(np.linalg.norm(model.frames[fid].placement.translation))
+                       for name, fid in self._fid.items()}
 
         if not math.isfinite(position_margin) or position_margin < 0:
             raise ValueError(f"position_margin must be a finite non-negative number, got {position_margin}")
@@ -158,7 +206,8 @@ class PandaKinematics:
             raise ValueError(f"position_margin {position_margin} rad leaves no joint range")
         urdf_v = np.array(model.velocityLimit, dtype=float)
         self.velocity_limit_source = (
-            "urdf (equal to datasheet)" if np.allclose(urdf_v, DATASHEET_DQ_MAX) else f"datasheet (urdf gave {urdf_v.tolist()})"
+            "urdf (equal to datasheet)" if np.allclose(urdf_v, DATASHEET_DQ_MAX)
+            else f"datasheet (urdf gave {urdf_v.tolist()})"
         )
         self.dq_max = DATASHEET_DQ_MAX.copy()
         self.ddq_max = DATASHEET_DDQ_MAX.copy()
@@ -260,17 +309,20 @@ class PandaKinematics:
         position error <= `tol_pos` (m) and the rotation error <= `tol_rot` (rad).
         """
         fid = self._frame_id(frame)
-        T_goal = validate_T(T_base_goal, "T_base_goal")
+        T_goal = np.asarray(T_base_goal, dtype=float)
+        if not _is_pose(T_goal):
+            validate_T(T_goal, "T_base_goal")  # raises, saying what is wrong
         p_goal, R_goal = T_goal[:3, 3], T_goal[:3, :3]
-        q = np.clip(self._q(self.q_neutral if q_seed is None else q_seed), self.q_min, self.q_max)
-        eye = np.eye(N_JOINTS)
-        pos_err = rot_err = math.inf
+        q_min, q_max = self.q_min, self.q_max
+        q = np.clip(self._q(self.q_neutral if q_seed is None else q_seed), q_min, q_max)
+        e = np.empty(6)
         it = 0
         while True:
             p, R, J = self._fk_jac(q, fid)
-            e = np.concatenate([p_goal - p, pin.log3(R_goal @ R.T)])
-            pos_err = float(np.linalg.norm(e[:3]))
-            rot_err = float(np.linalg.norm(e[3:]))
+            e[:3] = p_goal - p
+            e[3:] = pin.log3(R_goal @ R.T)
+            pos_err = math.sqrt(e[:3] @ e[:3])
+            rot_err = math.sqrt(e[3:] @ e[3:])
             if pos_err <= tol_pos and rot_err <= tol_rot:
                 return IKResult(q, True, pos_err, rot_err, it)
             if it >= max_iter:
@@ -279,35 +331,47 @@ class PandaKinematics:
             # The pull decays geometrically so it shapes the early iterations but
             # cannot hold the residual above tolerance (a null-space step is only
             # first-order free of task error).
-            pull = (null_gain * 0.5 ** (it - 1)) * (self.q_neutral - q)
-            free = np.ones(N_JOINTS, dtype=bool)
-            for _ in range(2):  # second pass only if a joint at its limit would be pushed outward
-                Jf = J * free
-                U, S, Vt = np.linalg.svd(Jf, full_matrices=False)
-                s_min = S[-1]
-                lam2 = 0.0 if s_min >= sigma_damp else (1.0 - (s_min / sigma_damp) ** 2) * damping**2
-                J_pinv = (Vt.T * (S / (S * S + lam2))) @ U.T
-                dq = J_pinv @ e + (eye - J_pinv @ Jf) @ (pull * free)
-                blocked = ((q <= self.q_min) & (dq < 0)) | ((q >= self.q_max) & (dq > 0))
-                if not np.any(blocked & free):
-                    break
-                free &= ~blocked
-            dq *= free
+            gain = null_gain * 0.5 ** (it - 1)
+            pull = gain * (self.q_neutral - q) if gain > 0 else None
+            low, high = q <= q_min, q >= q_max
+            if np.any(low | high):
+                dq = _dls_step_at_limits(J, e, pull, low, high, sigma_damp, damping)
+            else:
+                dq = _dls_step(J, e, pull, sigma_damp, damping)
             peak = float(np.max(np.abs(dq)))
             if peak > max_step:
                 dq *= max_step / peak
-            q = np.clip(q + dq, self.q_min, self.q_max)
+            q = np.clip(q + dq, q_min, q_max)
 
     def ik_or_raise(self, T_base_goal: np.ndarray, q_seed: np.ndarray | None = None, frame: str = "camera",
                     **options: float) -> np.ndarray:
-        """Like `ik` but returns only `q`, raising KinematicsError (with `.result`) if it did not converge."""
+        """Like `ik` but returns only `q`, raising KinematicsError (with `.result`) if no solution is found.
+
+        A goal beyond the arm's reach bound fails at once (`.result` None); otherwise a failed
+        first solve is retried from the neutral posture, from 6 perturbations of the seed and
+        from 8 samples of the joint range (deterministic), best residual reported on failure.
+        """
+        self._frame_id(frame)  # an unknown frame is misuse (ValueError), not an unreachable pose
+        p_goal = validate_T(T_base_goal, "T_base_goal")[:3, 3]
+        dist = float(np.linalg.norm(p_goal - self._shoulder))
+        if dist > self._reach[frame]:
+            err = KinematicsError(
+                f"IK for the {frame} frame: goal at {np.round(p_goal, 4).tolist()} m in the base frame is out of "
+                f"reach ({dist:.3f} m from the shoulder, the arm reaches at most {self._reach[frame]:.3f} m)"
+            )
+            err.result = None  # type: ignore[attr-defined]
+            raise err
         res = self.ik(T_base_goal, q_seed, frame, **options)
         if not res.success:
-            # DLS can stall in a local minimum (near a joint limit): retry from the neutral posture and
-            # from deterministic perturbations of the seed before declaring the pose unreachable.
+            # DLS can stall in a local minimum (a joint held at its limit) or crawl near a singularity:
+            # retry from the neutral posture, from perturbations of the seed (solutions near the seed
+            # first), then from anywhere in the joint range, before declaring the pose unreachable.
+            # The restarts are deterministic (fixed RNG seed) so a run is reproducible.
             base = self.q_neutral if q_seed is None else np.asarray(q_seed, dtype=float)
             rng = np.random.default_rng(12345)
-            for seed in [self.q_neutral, *(base + rng.uniform(-0.4, 0.4, N_JOINTS) for _ in range(6))]:
+            near = [base + rng.uniform(-0.4, 0.4, N_JOINTS) for _ in range(_RESTARTS_NEAR)]
+            anywhere = [rng.uniform(self.q_min, self.q_max) for _ in range(_RESTARTS_ANYWHERE)]
+            for seed in [self.q_neutral, *near, *anywhere]:
                 retry = self.ik(T_base_goal, np.clip(seed, self.q_min, self.q_max), frame, **options)
                 if retry.success:
                     return retry.q

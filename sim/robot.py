@@ -2,27 +2,31 @@
 
 Kinematic only: each `step(q_cmd)` moves the joints to `q_cmd` over one control
 period `dt` (the commanded velocity is (q_cmd - q)/dt), after checking the
-command against the joint position and velocity limits. A violating command is
-refused, leaves the state untouched and faults the robot (like libfranka's
-reflexes): every further command raises `RobotFault` until `recover()`.
+command against the joint position and velocity limits (and, if enabled, the
+acceleration limit). A violating command is refused, leaves the state untouched
+and faults the robot (like libfranka's reflexes): every further command raises
+`RobotFault` until `recover()`.
 
-`move_to` / `move_camera_to` plan a rest-to-rest joint motion with Ruckig
-(offline, jerk-limited), check every sample of the plan before the first
-command, then execute it tick by tick — the "plan before moving" rule.
+`move_to` / `move_camera_to` plan a joint motion to rest with Ruckig (offline,
+jerk-limited), check every tick-sample of the plan before the first command,
+then execute it tick by tick — the "plan before moving" rule.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig, Trajectory
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 
 from sim.panda import N_JOINTS, PandaKinematics
 from supervisor.clock import SimClock
-from supervisor.errors import JointLimitError, RobotFault
+from supervisor.errors import JointLimitError, KinematicsError, RobotFault
 
-_TOL = 1e-9
+_TOL = 1e-9  # absolute slack on position (rad) and velocity (rad/s) checks
+_REL_V = 1e-9  # relative slack on the velocity limit
+_REL_A = 1e-6  # relative slack on the acceleration limit (finite differences of a sampled plan)
 
 
 @dataclass(frozen=True)
@@ -36,32 +40,55 @@ class RobotState:
     T_base_flange: np.ndarray
 
 
-class SimRobot:
-    """Joint-position-controlled kinematic Panda."""
+def _first_violation(bad: np.ndarray) -> int:
+    return int(np.argmax(bad))
 
-    def __init__(self, kin: PandaKinematics, q0: np.ndarray, dt: float = 0.001, clock: SimClock | None = None) -> None:
+
+class SimRobot:
+    """Joint-position-controlled kinematic Panda.
+
+    `check_acceleration` (default off) also refuses a command whose implied
+    acceleration |dq_new - dq|/dt exceeds `ddq_max`: off by default because the
+    supervisor's own path follower is jerk-limited and the real robot filters,
+    while tests and dataset generation step the sim with hold commands from rest.
+    """
+
+    def __init__(self, kin: PandaKinematics, q0: np.ndarray, dt: float = 0.001, clock: SimClock | None = None,
+                 *, check_acceleration: bool = False) -> None:
         q0 = np.asarray(q0, dtype=float)
-        if not kin.within_limits(q0):
-            raise JointLimitError(int(np.argmax((q0 < kin.q_min) | (q0 > kin.q_max))) if q0.shape == (7,) else 0,
-                                  float("nan"), float("nan"), "start position outside the joint limits")
-        if not dt > 0:
-            raise ValueError(f"dt must be > 0, got {dt}")
+        if q0.shape != (N_JOINTS,) or not np.all(np.isfinite(q0)):
+            raise ValueError(f"q0 must be 7 finite joint angles, got {q0!r}")
+        low, high = q0 < kin.q_min, q0 > kin.q_max
+        if np.any(low | high):
+            j = _first_violation(low | high)
+            raise JointLimitError(j, float(q0[j]), float(kin.q_min[j] if low[j] else kin.q_max[j]), "start position")
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a finite number > 0, got {dt}")
         self.kin = kin
         self.dt = float(dt)
         self.clock = clock
+        self.check_acceleration = bool(check_acceleration)
         self._q = q0.copy()
         self._dq = np.zeros(N_JOINTS)
         self._seq = 0
         self._t = clock.now() if clock is not None else 0.0
+        self._T_flange: np.ndarray | None = None  # FK cache for the current q
         self.fault: str | None = None
 
     # -- state -------------------------------------------------------------------------
     def state(self) -> RobotState:
-        return RobotState(self._t, self._seq, self._q.copy(), self._dq.copy(), self.kin.fk(self._q, "flange"))
+        """Time, tick counter, joints and flange pose now (arrays are copies)."""
+        if self._T_flange is None:
+            self._T_flange = self.kin.fk(self._q, "flange")
+        return RobotState(self._t, self._seq, self._q.copy(), self._dq.copy(), self._T_flange.copy())
 
     @property
     def q(self) -> np.ndarray:
         return self._q.copy()
+
+    @property
+    def faulted(self) -> bool:
+        return self.fault is not None
 
     def recover(self) -> None:
         """Clear a fault (the robot is at rest where it stopped)."""
@@ -70,23 +97,29 @@ class SimRobot:
 
     # -- one control tick ------------------------------------------------------------
     def check_command(self, q_cmd: np.ndarray) -> None:
-        """Raise JointLimitError if `q_cmd` (one tick from now) breaks a position or velocity limit."""
+        """Raise JointLimitError if `q_cmd` (one tick from now) breaks a position, velocity (or acceleration) limit."""
         q_cmd = np.asarray(q_cmd, dtype=float)
         if q_cmd.shape != (N_JOINTS,) or not np.all(np.isfinite(q_cmd)):
-            raise JointLimitError(0, float("nan"), float("nan"), f"command is not 7 finite angles: {q_cmd!r}")
+            raise JointLimitError(0, float("nan"), float("nan"), f"command (not 7 finite angles: {q_cmd!r})")
         kin = self.kin
         low, high = q_cmd < kin.q_min - _TOL, q_cmd > kin.q_max + _TOL
         if np.any(low | high):
-            j = int(np.argmax(low | high))
+            j = _first_violation(low | high)
             raise JointLimitError(j, float(q_cmd[j]), float(kin.q_min[j] if low[j] else kin.q_max[j]), "position")
         dq = (q_cmd - self._q) / self.dt
-        fast = np.abs(dq) > kin.dq_max * (1 + 1e-9) + _TOL
+        fast = np.abs(dq) > kin.dq_max * (1 + _REL_V) + _TOL
         if np.any(fast):
-            j = int(np.argmax(fast))
+            j = _first_violation(fast)
             raise JointLimitError(j, float(dq[j]), float(np.sign(dq[j]) * kin.dq_max[j]), "velocity")
+        if self.check_acceleration:
+            ddq = (dq - self._dq) / self.dt
+            hard = np.abs(ddq) > kin.ddq_max * (1 + _REL_A)
+            if np.any(hard):
+                j = _first_violation(hard)
+                raise JointLimitError(j, float(ddq[j]), float(np.sign(ddq[j]) * kin.ddq_max[j]), "acceleration")
 
     def step(self, q_cmd: np.ndarray) -> RobotState:
-        """Execute one joint-position command over one tick."""
+        """Execute one joint-position command over one tick; returns the new state."""
         if self.fault is not None:
             raise RobotFault(f"robot is faulted ({self.fault}); call recover() first")
         try:
@@ -94,15 +127,16 @@ class SimRobot:
         except JointLimitError as exc:
             self.fault = str(exc)
             raise
-        q_cmd = np.asarray(q_cmd, dtype=float)
+        q_cmd = np.array(q_cmd, dtype=float)
         self._dq = (q_cmd - self._q) / self.dt
-        self._q = q_cmd.copy()
+        self._q = q_cmd
+        self._T_flange = None
         self._seq += 1
         if self.clock is not None:
             self.clock.advance(self.dt)
             self._t = self.clock.now()
         else:
-            self._t += self.dt
+            self._t = self._seq * self.dt  # no accumulated rounding over long runs
         return self.state()
 
     def hold(self, ticks: int = 1) -> RobotState:
@@ -114,51 +148,110 @@ class SimRobot:
 
     # -- planned motions ------------------------------------------------------------------
     def plan_to(self, q_goal: np.ndarray, limits_scale: float = 0.5) -> np.ndarray:
-        """Ruckig rest-to-rest joint plan to `q_goal`, sampled every tick and checked: (N, 7) positions."""
+        """Ruckig joint plan from the current state to rest at `q_goal`, one sample per tick, checked.
+
+        Starts from the current joint velocity (zero acceleration) so a plan
+        made while moving continues smoothly. Limits are the datasheet's
+        velocity/acceleration/jerk times `limits_scale`. Returns (N, 7)
+        positions, the last equal to `q_goal`; raises JointLimitError if any
+        sample breaks a position or velocity limit, RobotFault if Ruckig fails.
+        """
+        kin = self.kin
         q_goal = np.asarray(q_goal, dtype=float)
-        if not self.kin.within_limits(q_goal):
-            bad = (q_goal < self.kin.q_min) | (q_goal > self.kin.q_max)
-            j = int(np.argmax(bad))
-            raise JointLimitError(j, float(q_goal[j]), float(self.kin.q_max[j] if q_goal[j] > 0 else self.kin.q_min[j]),
+        if q_goal.shape != (N_JOINTS,) or not np.all(np.isfinite(q_goal)):
+            raise ValueError(f"q_goal must be 7 finite joint angles, got {q_goal!r}")
+        low, high = q_goal < kin.q_min, q_goal > kin.q_max
+        if np.any(low | high):
+            j = _first_violation(low | high)
+            raise JointLimitError(j, float(q_goal[j]), float(kin.q_min[j] if low[j] else kin.q_max[j]),
                                   "goal position")
         if not 0 < limits_scale <= 1:
             raise ValueError(f"limits_scale must be in (0, 1], got {limits_scale}")
         inp = InputParameter(N_JOINTS)
         inp.current_position = self._q.tolist()
-        inp.current_velocity = [0.0] * N_JOINTS
+        inp.current_velocity = self._dq.tolist()
         inp.current_acceleration = [0.0] * N_JOINTS
         inp.target_position = q_goal.tolist()
         inp.target_velocity = [0.0] * N_JOINTS
         inp.target_acceleration = [0.0] * N_JOINTS
-        inp.max_velocity = (self.kin.dq_max * limits_scale).tolist()
-        inp.max_acceleration = (self.kin.ddq_max * limits_scale).tolist()
-        inp.max_jerk = (self.kin.dddq_max * limits_scale).tolist()
+        inp.max_velocity = (kin.dq_max * limits_scale).tolist()
+        inp.max_acceleration = (kin.ddq_max * limits_scale).tolist()
+        inp.max_jerk = (kin.dddq_max * limits_scale).tolist()
         traj = Trajectory(N_JOINTS)
         result = Ruckig(N_JOINTS).calculate(inp, traj)
         if result not in (Result.Working, Result.Finished):
             raise RobotFault(f"Ruckig could not plan the joint motion ({result})")
-        n = max(1, int(np.ceil(traj.duration / self.dt - 1e-9)))
+        n = max(1, math.ceil(traj.duration / self.dt - 1e-9))
         plan = np.array([traj.at_time(min(k * self.dt, traj.duration))[0] for k in range(1, n + 1)])
         plan[-1] = q_goal
-        prev = np.vstack([self._q, plan[:-1]])
-        for k, q in enumerate(plan):
-            if not self.kin.within_limits(q, tol=_TOL):
-                raise JointLimitError(int(np.argmax((q < self.kin.q_min) | (q > self.kin.q_max))), float("nan"),
-                                      float("nan"), f"position at plan sample {k}")
-        v = np.abs(plan - prev) / self.dt
-        if np.any(v > self.kin.dq_max):
-            k, j = np.unravel_index(int(np.argmax(v - self.kin.dq_max)), v.shape)
-            raise JointLimitError(int(j), float(v[k, j]), float(self.kin.dq_max[j]), f"velocity at plan sample {k}")
+        self._check_plan(plan)
         return plan
 
+    def _check_plan(self, plan: np.ndarray) -> None:
+        """Position and velocity limits of every planned tick, with the same slack as `check_command`."""
+        kin = self.kin
+        low, high = plan < kin.q_min - _TOL, plan > kin.q_max + _TOL
+        if np.any(low | high):
+            k, j = np.argwhere(low | high)[0]
+            raise JointLimitError(int(j), float(plan[k, j]), float(kin.q_min[j] if low[k, j] else kin.q_max[j]),
+                                  f"position at plan tick {k + 1}")
+        v = np.diff(np.vstack([self._q, plan]), axis=0) / self.dt
+        fast = np.abs(v) > kin.dq_max * (1 + _REL_V) + _TOL
+        if np.any(fast):
+            k, j = np.argwhere(fast)[0]
+            raise JointLimitError(int(j), float(v[k, j]), float(np.sign(v[k, j]) * kin.dq_max[j]),
+                                  f"velocity at plan tick {k + 1}")
+
+    def brake(self, limits_scale: float = 1.0) -> RobotState:
+        """Controlled stop: decelerate every joint to rest (Ruckig velocity interface), then one tick at rest.
+
+        The stop uses the datasheet acceleration/jerk times `limits_scale`; a faulted robot is
+        already at rest (its reflex stopped it), so this only returns its state.
+        """
+        if self.fault is not None:
+            return self.state()
+        if not np.any(self._dq):
+            return self.hold(1)
+        if not 0 < limits_scale <= 1:
+            raise ValueError(f"limits_scale must be in (0, 1], got {limits_scale}")
+        kin = self.kin
+        inp = InputParameter(N_JOINTS)
+        inp.control_interface = ControlInterface.Velocity
+        inp.current_position = self._q.tolist()
+        inp.current_velocity = self._dq.tolist()
+        inp.current_acceleration = [0.0] * N_JOINTS
+        inp.target_velocity = [0.0] * N_JOINTS
+        inp.target_acceleration = [0.0] * N_JOINTS
+        inp.max_velocity = kin.dq_max.tolist()
+        inp.max_acceleration = (kin.ddq_max * limits_scale).tolist()
+        inp.max_jerk = (kin.dddq_max * limits_scale).tolist()
+        traj = Trajectory(N_JOINTS)
+        result = Ruckig(N_JOINTS).calculate(inp, traj)
+        if result not in (Result.Working, Result.Finished):
+            raise RobotFault(f"Ruckig could not plan the stop ({result})")
+        n = max(1, math.ceil(traj.duration / self.dt - 1e-9))
+        plan = np.array([traj.at_time(min(k * self.dt, traj.duration))[0] for k in range(1, n + 1)])
+        self._check_plan(plan)
+        for q in plan:
+            self.step(q)
+        return self.hold(1)
+
     def move_to(self, q_goal: np.ndarray, limits_scale: float = 0.5) -> RobotState:
-        """Plan (and check) a motion to `q_goal`, then execute it tick by tick."""
+        """Plan (and check) a motion to `q_goal`, then execute it tick by tick; ends with one tick at rest."""
+        if self.fault is not None:
+            raise RobotFault(f"robot is faulted ({self.fault}); call recover() first")
         for q in self.plan_to(q_goal, limits_scale):
             self.step(q)
         return self.hold(1)  # one tick at rest so dq reads zero
 
     def move_camera_to(self, T_base_cam: np.ndarray, q_seed: np.ndarray | None = None,
                        limits_scale: float = 0.5) -> RobotState:
-        """IK for the camera frame (seeded by the current joints), then `move_to`."""
-        q_goal = self.kin.ik_or_raise(T_base_cam, self._q if q_seed is None else q_seed, "camera")
+        """IK for the camera frame (seeded by the current joints unless `q_seed`), then `move_to`."""
+        seed = self._q if q_seed is None else q_seed
+        try:
+            q_goal = self.kin.ik_or_raise(T_base_cam, seed, "camera")
+        except KinematicsError as exc:
+            err = KinematicsError(f"move_camera_to: camera pose not reachable: {exc}")
+            err.result = getattr(exc, "result", None)  # type: ignore[attr-defined]
+            raise err from exc
         return self.move_to(q_goal, limits_scale)

@@ -28,6 +28,7 @@ from sim.robot import SimRobot
 from sim.scene import Scene, load_scene
 from supervisor.clock import SimClock
 from supervisor.config import Config
+from supervisor.errors import ConfigError
 from supervisor.evaluation.metrics import actual_boundary
 from supervisor.geometry import make_T, pose_error
 from supervisor.localization.artifacts import viewing_angle
@@ -85,6 +86,11 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
     uses, after the model images were taken; `stage_override` replaces the stage.
     """
     wall0 = time.monotonic()
+    if cfg.robot.driver != "sim" or cfg.camera.driver != "sim":
+        # A dry-run is simulation by definition: never let a hardware config silently run on the sim.
+        raise ConfigError(Path(cfg.file), "robot.driver" if cfg.robot.driver != "sim" else "camera.driver",
+                          "the dry-run needs the sim robot and sim camera; this config selects "
+                          f"robot '{cfg.robot.driver}', camera '{cfg.camera.driver}'")
     stage: StageConfig = stage_override or cfg.stage(spec.stage)
     if spec.sampling is not None:
         stage = dataclasses.replace(stage, sampling=spec.sampling)

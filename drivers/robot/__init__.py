@@ -6,5 +6,7 @@ ROBOTS = DriverRegistry(
     "robot",
     {
         "sim": DriverEntry("drivers.robot.sim", "SimRobotDriver", doc="kinematic Panda in simulated time"),
+        "franka": DriverEntry("drivers.robot.franka", "FrankaRobot", extra="franka",
+                              doc="Franka Panda through franky (libfranka); untested on hardware"),
     },
 )

@@ -2,7 +2,8 @@
 
 One joint-position command per control tick (`command`), the robot's state per
 tick (`state`), a controlled stop (`stop`). `close()` is idempotent; drivers
-are context managers.
+are context managers. Refusals surface as `RobotFault` (a limit breach as its
+child `JointLimitError`); a dead connection as `DriverError`.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import abc
 import numpy as np
 
 from sim.robot import RobotState
+from supervisor.errors import DriverError
 
 
 class Robot(abc.ABC):
@@ -37,7 +39,15 @@ class Robot(abc.ABC):
         """Bring the arm to rest and hold (the driver's own controlled stop)."""
 
     def _close(self) -> None:
-        """Release the backend (override)."""
+        """Release the backend (override; called once)."""
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DriverError(f"{type(self).__name__} is closed")
 
     def close(self) -> None:
         if not self._closed:

@@ -19,11 +19,19 @@ class SimRobotDriver(Robot):
         return self.sim.dt
 
     def state(self) -> RobotState:
+        self._check_open()
         return self.sim.state()
 
     def command(self, q: np.ndarray) -> None:
+        self._check_open()
         self.sim.step(q)
 
     def stop(self) -> None:
-        # The kinematic sim has no dynamics to brake; the supervisor brakes along the path itself.
-        self.sim.hold(1)
+        """Decelerate the joints to rest at the datasheet limits (like the robot's own stop), then hold."""
+        self._check_open()
+        self.sim.brake()
+
+    def recover(self) -> None:
+        """Clear a refused-command fault so commands are accepted again."""
+        self._check_open()
+        self.sim.recover()
