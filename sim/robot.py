@@ -177,15 +177,19 @@ class SimRobot:
         inp.max_velocity = (kin.dq_max * limits_scale).tolist()
         inp.max_acceleration = (kin.ddq_max * limits_scale).tolist()
         inp.max_jerk = (kin.dddq_max * limits_scale).tolist()
-        traj = Trajectory(N_JOINTS)
-        result = Ruckig(N_JOINTS).calculate(inp, traj)
-        if result not in (Result.Working, Result.Finished):
-            raise RobotFault(f"Ruckig could not plan the joint motion ({result})")
-        n = max(1, math.ceil(traj.duration / self.dt - 1e-9))
-        plan = np.array([traj.at_time(min(k * self.dt, traj.duration))[0] for k in range(1, n + 1)])
+        plan = self._sample(inp, "joint motion")
         plan[-1] = q_goal
         self._check_plan(plan)
         return plan
+
+    def _sample(self, inp: InputParameter, what: str) -> np.ndarray:
+        """Plan with Ruckig (offline) and sample the positions at every tick after now: (N, 7)."""
+        traj = Trajectory(N_JOINTS)
+        result = Ruckig(N_JOINTS).calculate(inp, traj)
+        if result not in (Result.Working, Result.Finished):
+            raise RobotFault(f"Ruckig could not plan the {what} ({result})")
+        n = max(1, math.ceil(traj.duration / self.dt - 1e-9))
+        return np.array([traj.at_time(min(k * self.dt, traj.duration))[0] for k in range(1, n + 1)])
 
     def _check_plan(self, plan: np.ndarray) -> None:
         """Position and velocity limits of every planned tick, with the same slack as `check_command`."""
@@ -225,12 +229,7 @@ class SimRobot:
         inp.max_velocity = kin.dq_max.tolist()
         inp.max_acceleration = (kin.ddq_max * limits_scale).tolist()
         inp.max_jerk = (kin.dddq_max * limits_scale).tolist()
-        traj = Trajectory(N_JOINTS)
-        result = Ruckig(N_JOINTS).calculate(inp, traj)
-        if result not in (Result.Working, Result.Finished):
-            raise RobotFault(f"Ruckig could not plan the stop ({result})")
-        n = max(1, math.ceil(traj.duration / self.dt - 1e-9))
-        plan = np.array([traj.at_time(min(k * self.dt, traj.duration))[0] for k in range(1, n + 1)])
+        plan = self._sample(inp, "stop")
         self._check_plan(plan)
         for q in plan:
             self.step(q)
