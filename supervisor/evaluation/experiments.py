@@ -99,13 +99,13 @@ def evaluate_dataset(name: str, kind: str, rows: list) -> DatasetResult:
     for variant in VARIANTS:
         suffix = "" if variant == "paper" else f"_{variant}"
         # Long range: one fit on the first k positions.
-        mf = fit_variant(variant, *prefix(k_lr - 1))
+        mf = fit_variant(variant, *prefix(k_lr - 1), time_budget_s=math.inf)  # offline: never load-dependent
         x_now = float(xf[k_lr - 1])
         stops[f"long_range{suffix}"] = [axis.to_si(mf.boundary(nt, x_now, xmax_f)) if mf.ok else float(x[k_lr - 1])
                                         for nt in N_T]
         # Next step: a fit after every position, the rule applied per n_t.
         # Warm-up as in the supervisor loop: the first k positions are sampled whatever the fits say.
-        fits = [fit_variant(variant, *prefix(k)) if k + 1 >= k_lr else None for k in range(len(x))]
+        fits = [fit_variant(variant, *prefix(k), time_budget_s=math.inf) if k + 1 >= k_lr else None for k in range(len(x))]
         step = float(np.median(np.diff(xf)))
         out = []
         for nt in N_T:

@@ -34,6 +34,7 @@ class Prediction:
     x_now: float  # SI, the furthest sampled position
     fit: object | None = None  # FitResult (params in fit units) when there is one
     params: tuple[float, float, float] | None = None  # (alpha, K, mu) in fit units, for plots
+    scale: float = 1.0  # EMG width in fit units (1 = the paper's model): curve = emg(x, *params, scale)
 
 
 @dataclass
@@ -96,7 +97,8 @@ class _FittingPredictor:
         x_max_fit = float(self.axis.to_fit(self.x_max))
         b_fit = mf.boundary(self.n_t, float(self.axis.to_fit(x_now)), x_max_fit)
         b = self.axis.to_si(b_fit)
-        return Prediction(True, b, _allow(b, x_now, self.step, self.x_max), "ok", x_now, mf.fit, mf.fit.params)
+        return Prediction(True, b, _allow(b, x_now, self.step, self.x_max), mf.fit.reason, x_now, mf.fit,
+                          mf.fit.params, mf.fit.scale)
 
 
 class NextStepPredictor(_FittingPredictor):
@@ -136,8 +138,8 @@ class LongRangePredictor(_FittingPredictor):
         if not f.valid:
             self.last = Prediction(False, math.nan, False, f.reason, x_now, f.fit)
         else:
-            self.last = Prediction(True, f.boundary, _allow(f.boundary, x_now, self.step, self.x_max), "ok", x_now,
-                                   f.fit, f.params)
+            self.last = Prediction(True, f.boundary, _allow(f.boundary, x_now, self.step, self.x_max), f.reason, x_now,
+                                   f.fit, f.params, f.scale)
         return self.last
 
 

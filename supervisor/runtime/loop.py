@@ -216,6 +216,7 @@ class SupervisorLoop:
         self.record.fits.append({"t": now, "step": step, "theta_max": float(xs.max()) if len(xs) else math.nan,
                                  "valid": bool(pred is not None and pred.valid),
                                  "params": None if fit is None else getattr(fit, "params", None),
+                                 "scale": 1.0 if fit is None else getattr(fit, "scale", 1.0),
                                  "boundary": None if pred is None else pred.boundary})
         self._set_prediction(now, pred)
 

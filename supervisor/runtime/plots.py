@@ -49,7 +49,7 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
     fits = [f for f in record.fits if f["valid"] and f["params"] is not None]
     for k, f in enumerate(fits):
         last = k == len(fits) - 1
-        ax2.plot(x, emg(x, *f["params"]), color="tab:green", alpha=1.0 if last else 0.25, lw=1.5 if last else 0.8,
+        ax2.plot(x, emg(x, *f["params"], f.get("scale", 1.0)), color="tab:green", alpha=1.0 if last else 0.25, lw=1.5 if last else 0.8,
                  label="EMG fit (latest)" if last else None)
     ax2.axhline(summary.get("n_t", 0), color="tab:red", ls="--", lw=0.8, label="n_t")
     ax2.set_xlabel("viewing angle theta [deg]")

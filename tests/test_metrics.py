@@ -1,0 +1,37 @@
+"""Paper metrics: edge cases beyond the hand-computed examples in test_prediction.py."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from supervisor.evaluation.metrics import actual_boundary, incursion_rate, max_mean_spl_zero_incursion, sweep
+
+
+def test_actual_boundary_sorts_positions_and_takes_the_earlier_quantity():
+    x = np.array([3.0, 0.0, 2.0, 1.0])  # unsorted input
+    t = np.array([0.004, 0.0, 0.002, 0.001])  # crosses 0.0025 at 2.25 (sorted: 0, .001, .002, .004)
+    r = np.array([0.0, 0.0, 0.05, 0.2])  # crosses 0.1 at 1 + 0.1/0.15 (sorted: 0, .2, .05, 0)
+    assert actual_boundary(x, t, np.zeros(4), 0.0025, 1.0) == pytest.approx(2.25)
+    assert actual_boundary(x, t, r, 0.0025, 0.1) == pytest.approx(0.5)  # rotation first: 0 -> .2 at x=1
+    assert actual_boundary(x, t, np.array([0, 0, math.nan, 0]), 0.0025, 0.1) == pytest.approx(2.0)  # NaN = lost
+    with pytest.raises(ValueError):
+        actual_boundary(np.array([]), np.array([]), np.array([]), 0.002, 0.05)
+
+
+def test_incursion_counts_only_strict_overshoot():
+    assert incursion_rate([(10.0, 10.0), (10.0 + 1e-12, 10.0), (11.0, 10.0), (9.0, 10.0)]) == 0.25
+    with pytest.raises(ValueError):
+        incursion_rate([])
+
+
+def test_sweep_picks_the_largest_safe_operating_point():
+    actual = [10.0, 20.0, 30.0]
+    # a predictor whose stop grows with the operating point: stopping exactly at theta_a is safe
+    curve = sweep(np.arange(0.0, 15.0, 1.0), lambda op, i: op + i, actual)
+    best = max_mean_spl_zero_incursion(curve)
+    assert best.operating_point == 10.0 and best.stops == (10.0, 11.0, 12.0)
+    assert best.mean_spl == pytest.approx(11.0)
+    assert [c.incursion_rate for c in curve][9:12] == [0.0, 0.0, pytest.approx(1 / 3)]

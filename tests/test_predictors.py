@@ -1,0 +1,94 @@
+"""Model variants beyond the paper: exponential-tail fallback, observation guard, confidence band,
+free width — each against the paper-exact fit on data where the paper's fit is known to fail."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from supervisor.prediction import make_predictor
+from supervisor.prediction.emg import boundary, emg
+from supervisor.prediction.models import VARIANTS, fit_variant
+
+# Four positions of the simulated box_fine arc (azimuth 90 deg): only the decaying side is visible.
+TAIL_X = np.repeat([0.0, 2.25, 4.499, 6.749], 3)
+TAIL_N = np.array([1413, 1409, 1433, 1335, 1343, 1362, 1303, 1316, 1292, 1254, 1265, 1252], float)
+
+
+def test_tail_fallback_keeps_a_valid_model_where_the_paper_fit_has_none():
+    assert not fit_variant("paper", TAIL_X, TAIL_N).ok
+    line = np.polyfit(TAIL_X, np.log1p(TAIL_N), 1)
+    expected = (math.log1p(100) - line[1]) / line[0]  # where the log-linear tail reaches n = 100
+    for variant in ("logfit", "lcb", "logfit_lcb", "fw", "fw_lcb"):
+        mf = fit_variant(variant, TAIL_X, TAIL_N)
+        assert mf.ok and mf.fit.reason.startswith("ok: exponential tail"), (variant, mf.fit.reason)
+        b = mf.boundary(100, 6.749, 200.0)
+        if variant.endswith("lcb"):
+            assert 6.749 <= b < expected
+        else:
+            assert b == pytest.approx(expected, rel=1e-9)
+        assert not fit_variant(variant, TAIL_X, TAIL_N, tail_fallback=False).ok
+
+
+def test_observation_guard_stops_when_the_frames_here_are_already_below_threshold():
+    # A plateau then a sharp drop: the fit, dominated by the plateau, says the curve stays above 150
+    # until the range end, but the frames at 40.5 deg already have ~121 inliers.
+    x = np.repeat(np.arange(0, 40.6, 2.25), 3)
+    n = 800 / (1 + np.exp((x - 38) / 1.5)) * (1 + 0.05 * np.tile([-1, 0, 1], len(x) // 3))
+    assert n[x == x.max()].mean() < 150
+    assert fit_variant("paper", x, n).boundary(150, 40.5, 45.0) == 45.0  # late: non-conservative
+    for variant in VARIANTS[1:]:
+        assert fit_variant(variant, x, n).boundary(150, 40.5, 45.0) == 40.5
+        assert fit_variant(variant, x, n, guard=False).boundary(150, 40.5, 45.0) > 40.5
+
+
+def test_confidence_band_is_cautious_even_when_the_point_estimate_never_falls_in_range():
+    rng = np.random.default_rng(0)
+    x = np.repeat(np.arange(0, 9.1, 2.25), 3)
+    n = emg(x, 20000, 15.0, -1.0) * np.exp(0.15 * rng.standard_normal(len(x)))
+    assert fit_variant("paper", x, n).boundary(15, 9.0, 45.0) == 45.0
+    for point, band in (("paper", "lcb"), ("logfit", "logfit_lcb")):
+        p, c = fit_variant(point, x, n), fit_variant(band, x, n)
+        assert 9.0 <= c.boundary(15, 9.0, 45.0) < 42.0 <= p.boundary(15, 9.0, 45.0)
+        for nt in (15, 40, 100):  # never beyond its own point estimate
+            assert c.boundary(nt, 9.0, 45.0) <= p.boundary(nt, 9.0, 45.0) + 1e-9
+
+
+def test_free_width_fixes_the_late_boundary_of_the_unit_width_fit_on_a_wide_shoulder():
+    p, s = (13000.0, 0.4, 10.0), 6.0  # n rises to ~800 at 15 deg, falls to 15 at 31.2 deg
+    truth = boundary(p, 15, 0.0, 45.0, s)
+    assert truth == pytest.approx(31.2, abs=0.1)
+    x_all = np.repeat(np.arange(0.0, 45.1, 2.25), 5)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        x = x_all[x_all <= 20.25 + 1e-9]
+        n = emg(x, *p, s) * np.exp(0.1 * rng.standard_normal(len(x)))
+        assert fit_variant("paper", x, n).boundary(15, 20.25, 45.0) == 45.0  # "never": > 13 deg late
+        fw = fit_variant("fw", x, n)
+        assert fw.boundary(15, 20.25, 45.0) == pytest.approx(truth, abs=3.0)
+        assert 20.25 <= fit_variant("fw_lcb", x, n).boundary(15, 20.25, 45.0) <= truth
+
+
+def test_next_step_predictor_reports_the_fitted_width_and_is_deterministic():
+    p, s = (13000.0, 0.4, 10.0), 6.0
+    rng = np.random.default_rng(5)
+    step = math.radians(2.25)
+    runs = []
+    for _ in range(2):
+        pred = make_predictor("next_step", "fw_lcb", 15, step)
+        outs = []
+        for k in range(10):
+            deg = np.full(5, k * 2.25)
+            outs.append(pred.update(np.radians(deg), emg(deg, *p, s) * (1 + 0.05 * np.linspace(-1, 1, 5))))
+        runs.append([(o.valid, o.boundary, o.scale) for o in outs])
+    np.testing.assert_array_equal(np.array(runs[0], float), np.array(runs[1], float))  # bit-identical
+    last = runs[0][-1]
+    assert last[0] and last[2] == pytest.approx(s, rel=0.2)
+    assert math.degrees(last[1]) == pytest.approx(boundary(p, 15, 0.0, 45.0, s), abs=3.0)
+
+
+def test_unknown_variant_is_a_misuse_error():
+    with pytest.raises(ValueError, match="unknown model variant"):
+        fit_variant("best", TAIL_X, TAIL_N)
