@@ -44,6 +44,18 @@ def _first_violation(bad: np.ndarray) -> int:
     return int(np.argmax(bad))
 
 
+def _joints_within_limits(kin: PandaKinematics, q: np.ndarray, name: str, kind: str) -> np.ndarray:
+    """`q` as 7 finite floats inside the joint limits, or ValueError / JointLimitError naming `kind`."""
+    q = np.asarray(q, dtype=float)
+    if q.shape != (N_JOINTS,) or not np.all(np.isfinite(q)):
+        raise ValueError(f"{name} must be 7 finite joint angles, got {q!r}")
+    low, high = q < kin.q_min, q > kin.q_max
+    if np.any(low | high):
+        j = _first_violation(low | high)
+        raise JointLimitError(j, float(q[j]), float(kin.q_min[j] if low[j] else kin.q_max[j]), kind)
+    return q
+
+
 class SimRobot:
     """Joint-position-controlled kinematic Panda.
 
@@ -55,13 +67,7 @@ class SimRobot:
 
     def __init__(self, kin: PandaKinematics, q0: np.ndarray, dt: float = 0.001, clock: SimClock | None = None,
                  *, check_acceleration: bool = False) -> None:
-        q0 = np.asarray(q0, dtype=float)
-        if q0.shape != (N_JOINTS,) or not np.all(np.isfinite(q0)):
-            raise ValueError(f"q0 must be 7 finite joint angles, got {q0!r}")
-        low, high = q0 < kin.q_min, q0 > kin.q_max
-        if np.any(low | high):
-            j = _first_violation(low | high)
-            raise JointLimitError(j, float(q0[j]), float(kin.q_min[j] if low[j] else kin.q_max[j]), "start position")
+        q0 = _joints_within_limits(kin, q0, "q0", "start position")
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a finite number > 0, got {dt}")
         self.kin = kin
@@ -157,14 +163,7 @@ class SimRobot:
         sample breaks a position or velocity limit, RobotFault if Ruckig fails.
         """
         kin = self.kin
-        q_goal = np.asarray(q_goal, dtype=float)
-        if q_goal.shape != (N_JOINTS,) or not np.all(np.isfinite(q_goal)):
-            raise ValueError(f"q_goal must be 7 finite joint angles, got {q_goal!r}")
-        low, high = q_goal < kin.q_min, q_goal > kin.q_max
-        if np.any(low | high):
-            j = _first_violation(low | high)
-            raise JointLimitError(j, float(q_goal[j]), float(kin.q_min[j] if low[j] else kin.q_max[j]),
-                                  "goal position")
+        q_goal = _joints_within_limits(kin, q_goal, "q_goal", "goal position")
         if not 0 < limits_scale <= 1:
             raise ValueError(f"limits_scale must be in (0, 1], got {limits_scale}")
         inp = InputParameter(N_JOINTS)
