@@ -177,3 +177,41 @@ def test_artifacts_angle_and_translation():
                [0.03, 0.04, 0.0])
     assert viewing_angle(T0, T) == pytest.approx(0.3, abs=1e-12)
     assert translation_from_start(T0, T) == pytest.approx(0.05, abs=1e-12)
+
+
+def test_robust_refinement_ignores_outliers_and_never_worsens():
+    import cv2
+
+    from supervisor.localization.localizer import refine_pose_robust
+
+    rng = np.random.default_rng(3)
+    K = np.array([[1400.0, 0, 640], [0, 1400.0, 512], [0, 0, 1]])
+    dist = np.zeros(5)
+    obj = rng.uniform([-0.05, -0.05, -0.02], [0.05, 0.05, 0.02], (300, 3))
+    r_true, t_true = np.array([0.3, -0.2, 0.1]), np.array([0.01, -0.02, 0.37])
+    img = cv2.projectPoints(obj, r_true, t_true, K, dist)[0].reshape(-1, 2)
+    img += rng.normal(0, 0.3, img.shape)
+    bad = rng.random(300) < 0.25  # a quarter gross outliers, 3-15 px off
+    img[bad] += rng.uniform(3, 15, (bad.sum(), 2)) * rng.choice([-1, 1], (bad.sum(), 2))
+    r0, t0 = r_true + 0.01, t_true + 0.002  # a RANSAC-quality start
+
+    def err(r, t):
+        return pose_error(make_T(cv2.Rodrigues(np.asarray(r, float))[0], np.ravel(t)),
+                          make_T(cv2.Rodrigues(r_true)[0], t_true))
+
+    def cauchy(r, t, s=0.7):
+        e = cv2.projectPoints(obj, np.ravel(r), np.ravel(t), K, dist)[0].reshape(-1, 2) - img
+        return np.sum(np.log1p(np.sum(e * e, axis=1) / s ** 2))
+
+    r_lm, t_lm = cv2.solvePnPRefineLM(obj, img, K, dist, r0.reshape(3, 1), t0.reshape(3, 1))
+    r_rb, t_rb = refine_pose_robust(obj, img, K, dist, r0, t0, 0.7)
+    assert cauchy(r_rb, t_rb) <= cauchy(r0, t0)
+    assert err(r_rb, t_rb)[0] < 0.2e-3 and math.degrees(err(r_rb, t_rb)[1]) < 0.05
+    assert err(r_rb, t_rb)[0] < 0.5 * err(r_lm, t_lm)[0]  # least squares is pulled by the outliers
+
+
+def test_refine_setting_validated():
+    with pytest.raises(ValueError, match="refine must be one of"):
+        LocalizerSettings(refine="magic")
+    with pytest.raises(ValueError, match="refine_scale_px"):
+        LocalizerSettings(refine_scale_px=0.0)

@@ -16,6 +16,7 @@ from supervisor.yamlschema import Node
 MATCHERS = ("flann", "bf")
 PNP_METHODS = ("usac_magsac", "epnp", "p3p", "ap3p", "iterative")
 ROI_MODES = ("predicted", "off")
+REFINE_MODES = ("robust", "inliers")
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,11 @@ class LocalizerSettings:
     ransac_iterations: int = 1000
     ransac_confidence: float = 0.999
     min_inliers: int = 6  # below: LOST (RANSAC fits only false matches)
+    # Final pose polish after RANSAC. "robust": Cauchy-weighted Gauss-Newton over *all* ratio-test
+    # matches, started at RANSAC's pose (a hard inlier set at 2 px keeps biased matches at full weight
+    # and drops good ones just outside); "inliers": OpenCV's LM on RANSAC's inliers only.
+    refine: str = "robust"
+    refine_scale_px: float = 0.7  # Cauchy scale: residuals well above it get little weight
     roi: str = "predicted"  # predicted | off
     roi_margin_px: int = 48
     threads: int = 0  # cv2.setNumThreads at Localizer construction; 0 = leave OpenCV's setting
@@ -93,6 +99,10 @@ class LocalizerSettings:
             raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
         if self.min_inliers < 4:
             raise ValueError(f"min_inliers must be >= 4, got {self.min_inliers}")
+        if self.refine not in REFINE_MODES:
+            raise ValueError(f"refine must be one of {REFINE_MODES}, got {self.refine!r}")
+        if not self.refine_scale_px > 0.0:
+            raise ValueError(f"refine_scale_px must be > 0, got {self.refine_scale_px}")
 
     @classmethod
     def from_node(cls, node: Node) -> LocalizerSettings:
@@ -118,6 +128,9 @@ class LocalizerSettings:
             ransac_confidence=node.number("ransac_confidence", d.ransac_confidence, min=0.0, max=1.0,
                                           min_exclusive=True),
             min_inliers=node.integer("min_inliers", d.min_inliers, min=4, max=100_000),
+            refine=node.string("refine", d.refine, choices=REFINE_MODES),
+            refine_scale_px=node.number("refine_scale_px", d.refine_scale_px, min=0.0, max=100.0,
+                                        min_exclusive=True),
             roi=node.string("roi", d.roi, choices=ROI_MODES),
             roi_margin_px=node.integer("roi_margin_px", d.roi_margin_px, min=0, max=10_000),
             threads=node.integer("threads", d.threads, min=0, max=256),
