@@ -130,6 +130,14 @@ class Scene:
     def T_base_board(self) -> np.ndarray:
         return self.T_base_scene @ self.T_scene_board
 
+    def reference_point_in_target(self) -> np.ndarray:
+        """(3,) centre of the target object's bounding box in the target (board) frame, metres:
+        the point at which localization's translation error is measured."""
+        V = np.vstack([f.vertices_scene() for f in self.faces])
+        centre = (V.min(axis=0) + V.max(axis=0)) / 2
+        T_board_scene = inv_T(self.T_scene_board)
+        return T_board_scene[:3, :3] @ centre + T_board_scene[:3, 3]
+
     def target_box_in_target(self) -> tuple[np.ndarray, np.ndarray]:
         """(T_target_box, half_extents): a box in the target (board) frame enclosing the target
         object's faces with a small margin, axis-aligned with the scene frame and stopping

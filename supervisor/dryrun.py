@@ -38,7 +38,7 @@ from supervisor.motion.paths import ArcPath, start_camera_pose
 from supervisor.motion.plan import PathFollower
 from supervisor.prediction import make_predictor
 from supervisor.runtime.events import EventLog
-from supervisor.runtime.loop import RunRecord, SupervisorLoop
+from supervisor.runtime.loop import RunRecord, SupervisorLoop, overshoot
 from supervisor.runtime.worker import InlineWorker
 from supervisor.stages import StageConfig
 
@@ -128,7 +128,8 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
 
     # Measured on what the sim robot executed (its state after every command), not on the plan.
     executed_theta = np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
-    oracle = _oracle(cfg, renderer, model, path, T0, stage.hard_limit, spec.seed) if spec.oracle else None
+    oracle = _oracle(cfg, renderer, model, path, T0, stage.hard_limit, spec.seed,
+                     scene.reference_point_in_target()) if spec.oracle else None
     summary = _summary(cfg, stage, scene, spec, record, executed_theta, oracle, events, clock.now(),
                        time.monotonic() - wall0)
     if out is not None:
@@ -143,8 +144,9 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
 
 
 def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, T0: np.ndarray, s_max: float,
-            seed: int) -> dict[str, Any]:
-    """Per-position mean localization errors along the whole arc (ground truth from the renderer)."""
+            seed: int, reference_point: np.ndarray) -> dict[str, Any]:
+    """Per-position mean localization errors along the whole arc (ground truth from the renderer;
+    translation error at the target's reference point)."""
     loc = Localizer(model, cfg.localization)
     thetas, t_errs, r_errs, n_mean = [], [], [], []
     n_pos = int(math.floor(s_max / ORACLE_STEP + 1e-9)) + 1
@@ -156,7 +158,7 @@ def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, 
             res = loc.localize(fr.image, predict_target_pose(T, T0, model.T_cam0_target))
             ns.append(res.n_inliers)
             if res.ok:
-                e_t, e_r = pose_error(res.T_cam_target, fr.T_cam_target)
+                e_t, e_r = pose_error(res.T_cam_target, fr.T_cam_target, reference_point)
             else:
                 e_t, e_r = math.inf, math.inf  # a failed localization exceeds every tolerance
             te.append(e_t)
@@ -177,6 +179,7 @@ def _summary(cfg, stage, scene, spec, record: RunRecord, executed_theta: np.ndar
     theta_p = [p for _, p, _ in record.theta_p_history if math.isfinite(p)]
     allowed = record.s_allowed_at_brake
     max_exec = float(executed_theta.max()) if len(executed_theta) else 0.0
+    over, shortfall = overshoot(np.asarray(record.trajectory_t), executed_theta, record.allowance_history)
     out: dict[str, Any] = {
         "stage": stage.name, "sampling": stage.sampling, "predictor": stage.predictor, "variant": stage.variant,
         "n_t": stage.n_t, "step_deg": math.degrees(stage.step), "margin_deg": math.degrees(stage.margin),
@@ -186,7 +189,11 @@ def _summary(cfg, stage, scene, spec, record: RunRecord, executed_theta: np.ndar
         "max_executed_angle_deg": math.degrees(max_exec),
         "predicted_boundary_deg": math.degrees(theta_p[-1]) if theta_p else None,
         "theta_allowed_at_brake_deg": math.degrees(allowed) if math.isfinite(allowed) else None,
-        "max_overshoot_deg": math.degrees(max_exec - allowed) if math.isfinite(allowed) else None,
+        # Executed angle beyond the allowance in force at each tick (see runtime.loop.overshoot);
+        # the final-allowance comparison and the revision shortfall are reported beside it.
+        "max_overshoot_deg": math.degrees(over) if math.isfinite(over) else None,
+        "overshoot_of_final_allowance_deg": math.degrees(max_exec - allowed) if math.isfinite(allowed) else None,
+        "revision_shortfall_deg": math.degrees(shortfall),
         "n_samples": len(record.samples), "n_predictions": len(record.theta_p_history),
         "faults": [e["fault"] for e in events.of_kind("fault")],
         "simulated_time_s": sim_time, "wall_time_s": wall_time,

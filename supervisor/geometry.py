@@ -107,9 +107,16 @@ def validate_T(T: np.ndarray, name: str = "transform", tol: float = 1e-6) -> np.
     return T
 
 
-def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """(translation error in metres, rotation error in radians) between two poses."""
-    dt = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+def pose_error(T_est: np.ndarray, T_true: np.ndarray, point: np.ndarray | None = None) -> tuple[float, float]:
+    """(translation error in metres, rotation error in radians) between two poses.
+
+    The translation error is that of `point` (in the posed frame; default its origin):
+    |T_est * point - T_true * point|. With the target frame on a fiducial board beside the
+    object, the origin is far from the object and the error there is mostly rotation error
+    times the lever arm; the error *at the target* is what the task depends on.
+    """
+    p = np.zeros(3) if point is None else np.asarray(point, float)
+    dt = float(np.linalg.norm((T_est[:3, :3] - T_true[:3, :3]) @ p + T_est[:3, 3] - T_true[:3, 3]))
     return dt, relative_angle(T_est[:3, :3], T_true[:3, :3])
 
 

@@ -77,6 +77,7 @@ def write_arc_dataset(out: str | Path, angles_deg: Sequence[float] = DEFAULT_ANG
                 "frame": "board",
                 "board": scene.board.to_dict(),
                 "roi_box": {"T_target_box": T_target_box.tolist(), "half_extents": [float(v) for v in half]},
+                "reference_point_m": [float(v) for v in scene.reference_point_in_target()],
             },
             "motion": {"kind": "arc", "pivot_base": pivot_base.tolist(), "T_base_cam0": T_base_cam0.tolist(),
                        "azimuth": math.radians(azimuth_deg), "step": step,

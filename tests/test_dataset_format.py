@@ -114,3 +114,16 @@ def test_replay_camera_paced_and_exhausted(tmp_path):
 def test_unknown_driver_names_available():
     with pytest.raises(DriverUnavailable, match="unknown camera driver 'gige'.*replay"):
         CAMERAS.load("gige")
+
+
+def test_reference_point_default_and_malformed(tmp_path):
+    root = _write(tmp_path / "ds")
+    assert np.array_equal(Dataset.open(root).reference_point, np.zeros(3))  # none recorded: frame origin
+    meta = json.loads((root / "dataset.json").read_text())
+    meta["target"] = {"reference_point_m": [0.01, -0.02, 0.03]}
+    (root / "dataset.json").write_text(json.dumps(meta))
+    assert np.allclose(Dataset.open(root).reference_point, [0.01, -0.02, 0.03])
+    meta["target"] = {"reference_point_m": [0.01, "x"]}
+    (root / "dataset.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"dataset.json: target.reference_point_m"):
+        Dataset.open(root)

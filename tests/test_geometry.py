@@ -61,3 +61,15 @@ def test_arc_azimuth_directions():
 def test_line_path():
     T0 = make_T(np.eye(3), [0, 0, 0])
     assert np.allclose(LinePath(T0, np.array([0, 0, -2.0])).pose(0.01)[:3, 3], [0, 0, -0.01])
+
+
+def test_pose_error_at_a_reference_point():
+    from supervisor.geometry import pose_error
+
+    T_true = make_T(np.eye(3), [0.1, 0.2, 0.3])
+    T_est = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), math.pi / 2), [0.1, 0.2, 0.3])
+    t0, r = pose_error(T_est, T_true)
+    assert t0 == 0.0 and r == pytest.approx(math.pi / 2)
+    # the point (1, 0, 0) of the frame moves to (0, 1, 0): error sqrt(2); rotation error unchanged
+    t1, r1 = pose_error(T_est, T_true, np.array([1.0, 0.0, 0.0]))
+    assert t1 == pytest.approx(math.sqrt(2)) and r1 == r

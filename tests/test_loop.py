@@ -84,6 +84,7 @@ def test_stop_and_go_runs_to_the_hard_limit_without_overshoot(cfg):
     assert s["max_executed_angle_deg"] <= 6.0 + 1e-6
     assert s["faults"] == [] and s["n_predictions"] == 5
     assert s["n_samples"] == 10
+    assert s["max_overshoot_deg"] <= 1e-6 and s["revision_shortfall_deg"] <= 1e-9
 
 
 def test_continuous_mode_halts_within_the_allowed_angle(cfg):
@@ -91,6 +92,22 @@ def test_continuous_mode_halts_within_the_allowed_angle(cfg):
     assert s["halt_reason"] in ("end_of_path", "boundary")
     assert s["max_executed_angle_deg"] <= 6.0 + 1e-6
     assert s["faults"] == []
+    assert s["max_overshoot_deg"] <= 1e-6
+
+
+def test_overshoot_bounds_each_tick_by_the_allowance_then_in_force():
+    from supervisor.runtime.loop import overshoot
+
+    t = np.arange(0.0, 1.0, 0.1)
+    s = np.minimum(t, 0.55)  # moves at 1 rad/s, stops at 0.55
+    # allowance 0.6 from t=0 -> never passed
+    assert overshoot(t, s, [(0.0, 0.6, 0.0)]) == (pytest.approx(-0.05), 0.0)
+    # lowered to 0.5 at t=0.25 while braking would have ended at 0.3: feasible, passed by 0.05
+    assert overshoot(t, s, [(0.0, 0.6, 0.0), (0.25, 0.5, 0.3)]) == (pytest.approx(0.05), 0.0)
+    # lowered to 0.3 at t=0.45 while braking would end at 0.52: bound 0.52, shortfall 0.22
+    over, short = overshoot(t, s, [(0.0, 0.6, 0.0), (0.45, 0.3, 0.52)])
+    assert over == pytest.approx(0.03) and short == pytest.approx(0.22)
+    assert overshoot([], [], [(0.0, 0.6, 0.0)])[0] == -math.inf
 
 
 def test_repeated_frame_is_a_stale_frame_fault_and_stops(cfg):

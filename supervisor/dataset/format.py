@@ -121,6 +121,14 @@ def _check_target(target: Any, mf: Path) -> None:
             raise DatasetError(mf, f"target.roi_box: malformed ({exc!r})") from exc
         if T.shape != (4, 4) or half.shape != (3,) or not (np.all(np.isfinite(T)) and np.all(half > 0)):
             raise DatasetError(mf, "target.roi_box: expected T_target_box 4x4 and 3 positive half_extents")
+    rp = target.get("reference_point_m")
+    if rp is not None:
+        try:
+            p = np.asarray(rp, float)
+        except (TypeError, ValueError) as exc:
+            raise DatasetError(mf, f"target.reference_point_m: malformed ({exc!r})") from exc
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise DatasetError(mf, f"target.reference_point_m: expected 3 finite numbers (metres), got {rp!r}")
 
 
 class Dataset:
@@ -211,6 +219,13 @@ class Dataset:
     @property
     def name(self) -> str:
         return self.root.name
+
+    @property
+    def reference_point(self) -> np.ndarray:
+        """(3,) point of the target frame where translation errors are measured (metres);
+        `target.reference_point_m`, or the target-frame origin when a recording has none."""
+        rp = (self.meta.get("target") or {}).get("reference_point_m")
+        return np.zeros(3) if rp is None else np.asarray(rp, float)
 
     @property
     def has_ground_truth(self) -> bool:

@@ -104,6 +104,7 @@ class _Recorder:
                 "frame": "board",
                 "board": self.scene.board.to_dict(),
                 "roi_box": {"T_target_box": T_target_box.tolist(), "half_extents": [float(v) for v in half]},
+                "reference_point_m": [float(v) for v in self.scene.reference_point_in_target()],
             },
             "motion": {"kind": kind, "pivot_base": self.pivot_base.tolist(), "T_base_cam0": self.T_base_cam0.tolist(),
                        **motion},

@@ -93,7 +93,7 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
         if res.status is Status.OK:
             prev = (T_base_cam, res.T_cam_target)
             if rec.T_cam_target_true is not None:
-                t_err, r_err = pose_error(res.T_cam_target, rec.T_cam_target_true)
+                t_err, r_err = pose_error(res.T_cam_target, rec.T_cam_target_true, ds.reference_point)
         out.append(FrameArtifact(rec.index, rec.position, viewing_angle(model.T_base_cam0, T_base_cam),
                                  translation_from_start(T_start, T_base_cam), res.n_inliers, res.n_matches,
                                  t_err, r_err, res.reprojection_error_px, res.status.name,

@@ -65,6 +65,30 @@ class Sample:
     meta: dict[str, Any]
 
 
+def overshoot(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
+              allowance_history: list[tuple[float, float, float]]) -> tuple[float, float]:
+    """(max overshoot, max revision shortfall), radians, of an executed path-angle trajectory.
+
+    At every executed sample the bound is the allowance in force then. When a revision
+    lowered the allowance below the point where braking at that moment would end
+    (`stop_at`), no controller could have stopped in front of it: the bound is then that
+    stop point, and the gap (stop_at - allowance) is reported separately as the
+    revision shortfall, a property of the predictions rather than of the gate. The
+    overshoot is the largest excess of the executed angle over the bound (<= 0: never passed).
+    """
+    t = np.asarray(trajectory_t, float)
+    s = np.asarray(trajectory_s, float)
+    if len(t) == 0 or not allowance_history:
+        return -math.inf, 0.0
+    ht = np.array([h[0] for h in allowance_history])
+    bound = np.array([max(a, stop) for _, a, stop in allowance_history])
+    shortfall = max(0.0, max(stop - a for _, a, stop in allowance_history))
+    k = np.searchsorted(ht, t, side="right") - 1
+    before = k < 0  # samples before the first allowance: bound by the first one
+    k[before] = 0
+    return float(np.max(s - bound[k])), float(shortfall)
+
+
 @dataclass
 class RunRecord:
     """Everything a run produced, for the summary and the plots."""
@@ -73,6 +97,8 @@ class RunRecord:
     halt_s: float = math.nan
     s_allowed_at_brake: float = math.nan
     theta_p_history: list[tuple[float, float, float]] = field(default_factory=list)  # (t, theta_p, theta_allowed)
+    # Every change of the allowance: (t, theta_allowed, where braking at once would have stopped at t).
+    allowance_history: list[tuple[float, float, float]] = field(default_factory=list)
     samples: list[Sample] = field(default_factory=list)
     trajectory_t: list[float] = field(default_factory=list)
     trajectory_s: list[float] = field(default_factory=list)
@@ -142,6 +168,7 @@ class SupervisorLoop:
             self._theta_allowed = allowed
             self._allow_next = allow_next
             self.record.theta_p_history.append((t, pred.boundary, allowed))
+            self._record_allowance(t)
         else:
             # No valid model: within the warm-up allowance keep it; beyond it, a controlled stop now
             # (no boundary is known, so the allowance is where braking from here ends).
@@ -150,10 +177,15 @@ class SupervisorLoop:
             self._theta_allowed = max(warm, stop_here) if s_now < warm - 1e-12 else stop_here
             self._allow_next = s_now + self.stage.step <= self._theta_allowed + 1e-12
             self.record.theta_p_history.append((t, math.nan, self._theta_allowed))
+            self._record_allowance(t)
         self.events.emit(t, "prediction", valid=bool(pred is not None and pred.valid),
                          theta_p_deg=math.degrees(pred.boundary) if pred is not None and pred.valid else None,
                          theta_allowed_deg=math.degrees(self._theta_allowed),
                          reason=getattr(pred, "reason", "no prediction"), s_deg=math.degrees(s_now))
+
+    def _record_allowance(self, t: float) -> None:
+        stop_at = self.follower.braking.furthest(self.follower.state)[0]
+        self.record.allowance_history.append((t, self._theta_allowed, stop_at))
 
     # -- frames --------------------------------------------------------------------------
     def _camera_pose_at(self, t: float) -> np.ndarray | None:
@@ -240,6 +272,7 @@ class SupervisorLoop:
         t_start = self.clock.now()
         self.history.add(st.t, st.q)
         self._last_state_t = st.t
+        self._record_allowance(t_start)
         sampling = self.stage.sampling
         self.events.emit(t_start, "start", stage=self.stage.name, sampling=sampling,
                          s_end_deg=math.degrees(self.s_end), theta_allowed_deg=math.degrees(self._theta_allowed))
