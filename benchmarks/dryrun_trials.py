@@ -1,7 +1,9 @@
 """Dry-run trial suite: the gated arc over benchmark scenes, azimuths and both sampling modes.
 
 Reports per trial the halt angle, the actual boundary (ground truth, 4 mm/10 deg), incursion,
-overshoot of theta_allowed on the executed joint trajectory and envelope usage; then the totals
+overshoot of theta_allowed on the executed joint trajectory (per tick, against the allowance in
+force), the revision shortfall (how far a revised allowance fell behind the point where braking
+at once would end) and envelope usage; then the totals
 against the paper's live trials (74.7% envelope usage, static 60.4%).
 
     .venv/bin/python benchmarks/dryrun_trials.py [-o out/trials] [--stage explore] [--jobs 2]
@@ -59,7 +61,7 @@ def main() -> int:
                   f"{s['halt_angle_deg']:.2f} deg, actual {s['actual_boundary_deg']['4mm_10deg']:.2f}, "
                   f"{'INCURSION' if s['incursion'] else 'ok'}", file=sys.stderr, flush=True)
     print(f"{'scene':<18} {'az':>4} {'mode':<12} {'halt':>6} {'theta_p':>7} {'allowed':>7} {'actual':>7} "
-          f"{'incur':>5} {'overshoot':>9} {'usage':>6}  reason")
+          f"{'incur':>5} {'overshoot':>9} {'revision':>8} {'usage':>6}  reason")
     def cell(v: float | None, fmt: str) -> str:
         return "—" if v is None else format(v, fmt)
 
@@ -67,7 +69,8 @@ def main() -> int:
         print(f"{s['scene']:<18} {s['azimuth_deg']:>4.0f} {s['sampling']:<12} {s['halt_angle_deg']:>6.2f} "
               f"{cell(s['predicted_boundary_deg'], '.2f'):>7} {cell(s['theta_allowed_at_brake_deg'], '.2f'):>7} "
               f"{s['actual_boundary_deg']['4mm_10deg']:>7.2f} {'YES' if s['incursion'] else 'no':>5} "
-              f"{cell(s['max_overshoot_deg'], '+.4f'):>9} {100 * s['envelope_usage']:>5.0f}%  {s['halt_reason']}")
+              f"{cell(s['max_overshoot_deg'], '+.4f'):>9} {s['revision_shortfall_deg']:>8.3f} "
+              f"{100 * s['envelope_usage']:>5.0f}%  {s['halt_reason']}")
     n = len(rows)
     inc = sum(s["incursion"] for s in rows)
     over = [s["max_overshoot_deg"] for s in rows if s["max_overshoot_deg"] is not None]
@@ -75,6 +78,10 @@ def main() -> int:
     safe_usage = [s["envelope_usage"] for s in rows if s["envelope_usage"] is not None and not s["incursion"]]
     summary = {"trials": n, "incursions": inc, "max_overshoot_deg": max(over) if over else None,
                "trials_with_overshoot": sum(o > 1e-6 for o in over),
+               "trials_with_revision_shortfall": sum(s["revision_shortfall_deg"] > 1e-6 for s in rows),
+               "max_revision_shortfall_deg": max((s["revision_shortfall_deg"] for s in rows), default=None),
+               "incursions_by_mode": {m: sum(s["incursion"] for s in rows if s["sampling"] == m)
+                                      for m in sorted({s["sampling"] for s in rows})},
                "mean_envelope_usage": sum(usage) / len(usage) if usage else None,
                "mean_envelope_usage_without_incursion": sum(safe_usage) / len(safe_usage) if safe_usage else None}
     print(json.dumps(summary, indent=1))
