@@ -90,6 +90,17 @@ class _Recorder:
             st, frame = self._settle_and_render()
             self.writer.add_frame(frame.image, position, i, s, st.t, st.q, st.T_base_flange, frame.T_cam_target)
 
+    def record_path(self, pose: Callable[[float], np.ndarray], n: int, step: float, n_img: int,
+                    describe: Callable[[float], str], progress: Progress | None) -> None:
+        """Record `n` positions at path coordinates 0, step, 2 step, ... with `n_img` images each."""
+        t_start = time.monotonic()
+        name = self.writer.root.name
+        for k in range(n):
+            s = k * step
+            self.record_position(k, s, pose(s), n_img)
+            if progress:
+                progress(f"  [{name}] {describe(s)}  position {k + 1}/{n}  ({time.monotonic() - t_start:.1f} s)")
+
     def metadata(self, kind: str, motion: dict[str, Any]) -> dict[str, Any]:
         T_target_box, half = self.scene.target_box_in_target()
         return {
@@ -119,16 +130,10 @@ def generate_arc(cfg: Config, out: str | Path, spec: ArcSpec, scene: Scene | str
     n_img = spec.images_per_position or proto.images_per_position
     rec = _Recorder(cfg, scene, Path(out), seed, overwrite)
     with rec.writer:
-        t_start = time.monotonic()
         rec.record_model_images()
         path = ArcPath(rec.T_base_cam0, rec.pivot_base, spec.azimuth)
         n = proto.n_positions
-        for k in range(n):
-            s = k * proto.step
-            rec.record_position(k, s, path.pose(s), n_img)
-            if progress:
-                progress(f"  [{Path(out).name}] arc {math.degrees(s):5.2f} deg  position {k + 1}/{n}  "
-                         f"({time.monotonic() - t_start:.1f} s)")
+        rec.record_path(path.pose, n, proto.step, n_img, lambda s: f"arc {math.degrees(s):5.2f} deg", progress)
         meta = rec.metadata("arc", {"azimuth": spec.azimuth, "step": proto.step, "sweep": proto.step * (n - 1),
                                     "positions": n, "images_per_position": n_img, "axis_base": path.axis.tolist()})
         return rec.writer.finish(meta)
@@ -142,16 +147,11 @@ def generate_line(cfg: Config, out: str | Path, spec: LineSpec, scene: Scene | s
     n_img = spec.images_per_position or proto.images_per_position
     rec = _Recorder(cfg, scene, Path(out), seed, overwrite)
     with rec.writer:
-        t_start = time.monotonic()
         rec.record_model_images()
         T_start = ArcPath(rec.T_base_cam0, rec.pivot_base, math.radians(90.0)).pose(spec.start_offset)
         line = LinePath(T_start, -T_start[:3, 2])
-        for k in range(proto.positions):
-            s = k * proto.step
-            rec.record_position(k, s, line.pose(s), n_img)
-            if progress:
-                progress(f"  [{Path(out).name}] line {s * 1000:5.1f} mm  position {k + 1}/{proto.positions}  "
-                         f"({time.monotonic() - t_start:.1f} s)")
+        rec.record_path(line.pose, proto.positions, proto.step, n_img, lambda s: f"line {s * 1000:5.1f} mm",
+                        progress)
         meta = rec.metadata("line", {"start_offset": spec.start_offset, "step": proto.step,
                                      "positions": proto.positions, "images_per_position": n_img,
                                      "direction_base": line.direction.tolist(), "T_base_cam_start": T_start.tolist()})
