@@ -95,6 +95,24 @@ def test_continuous_mode_halts_within_the_allowed_angle(cfg):
     assert s["max_overshoot_deg"] <= 1e-6
 
 
+def test_continuous_allowance_never_runs_more_than_a_step_ahead_of_the_samples(cfg, tmp_path):
+    import json
+
+    stage = _stage(cfg, sampling="continuous", hard_limit=math.radians(9.0), warmup_steps=2)
+    spec = DryRunSpec(stage=stage.name, azimuth=math.radians(90.0), oracle=False)
+    s = run_dry_run(cfg, spec, tmp_path, progress=lambda m: None, stage_override=stage)
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    furthest, checked = 0.0, 0
+    for e in events:
+        if e["kind"] == "localization":
+            furthest = max(furthest, e["theta_deg"])
+        elif e["kind"] == "prediction" and e["valid"] and e["s_deg"] >= 3.0 - 1e-9:  # past the warm-up
+            assert e["theta_allowed_deg"] <= furthest + 1.5 + 1e-6, e
+            checked += 1
+    assert checked >= 2 and s["max_overshoot_deg"] <= 1e-6
+    assert s["halt_angle_deg"] > 6.0  # the horizon slows the arc; it does not stop it
+
+
 def test_overshoot_bounds_each_tick_by_the_allowance_then_in_force():
     from supervisor.runtime.loop import overshoot
 

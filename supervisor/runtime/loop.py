@@ -10,6 +10,8 @@ Per tick:
    localization worker with the robot pose at the frame's time;
 3. take finished localizations, and once a step's samples are complete, update
    the predictor -> `theta_p`, `theta_allowed = min(theta_p - margin, hard_limit)`;
+   in continuous mode also at most one step beyond the furthest sample (the
+   next-step rule: a prediction is trusted one step ahead of its data, no further);
 4. the gate decides from Ruckig's braking profile whether this is the last tick
    at which a stop still ends at or before `theta_allowed`;
 5. the path follower advances (or brakes) and the robot gets one joint command.
@@ -143,6 +145,7 @@ class SupervisorLoop:
         self._target_s = 0.0
         self._next_frame_t = -math.inf
         self._closing: set[int] = set()  # continuous mode: steps complete in angle, awaiting localizations
+        self._evidence = 0.0  # furthest sample angle the predictor has seen (rad)
 
     # -- allowances ----------------------------------------------------------------------
     def _warmup_allowance(self) -> float:
@@ -159,6 +162,11 @@ class SupervisorLoop:
             else:
                 allowed = min(pred.boundary - self.stage.margin, self.stage.hard_limit)
             allow_next = pred.allow_next is not False
+            if self.stage.sampling == "continuous":
+                # Moving, the paper's next-step rule becomes a horizon: the prediction made from samples
+                # up to theta_e permits travel to theta_e + theta_b, no further, until the next update.
+                # (Stop-and-go applies the rule step by step in _tick_stop_and_go.)
+                allowed = min(allowed, self._evidence + self.stage.step)
             warm = self._warmup_allowance()
             if s_now < warm - 1e-12:
                 # Warm-up: a model from a few positions is too uncertain to stop on (a cautious
@@ -239,6 +247,8 @@ class SupervisorLoop:
         samples = self._step_samples.get(step, [])
         xs = np.array([s.theta for s in samples], float)
         ns = np.array([s.n_inliers for s in samples], float)
+        if len(xs):
+            self._evidence = max(self._evidence, float(xs.max()))
         try:
             pred = self.predictor.update(xs, ns)
         except Exception as exc:  # noqa: BLE001 - a predictor bug must stop the robot, not crash the loop
@@ -385,7 +395,7 @@ class SupervisorLoop:
             if self._awaiting.get(k, 0) == 0:
                 self._closing.discard(k)
                 self._update_predictor(now, k)
-        # The next-step permit is a stop-and-go notion; moving, theta_allowed (theta_p - margin) is the
+        # theta_allowed (theta_p - margin, and at most one step beyond the furthest sample) is the
         # bound: the robot is steered to stop there (and the gate brakes if a revision leaves no room).
         self._target_s = min(self.s_end, self._theta_allowed)
         idle = at_rest and not self._closing and not self.worker.busy
