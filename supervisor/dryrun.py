@@ -79,11 +79,13 @@ def _model_images(cfg: Config, sim: SimRobot, camera: SimCamera, T_base_cam0: np
 
 
 def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print, *,
-                wrap_camera=None, wrap_robot=None, stage_override: StageConfig | None = None) -> dict[str, Any]:
+                wrap_camera=None, wrap_robot=None, stage_override: StageConfig | None = None,
+                latency_scale: float = 1.0) -> dict[str, Any]:
     """Run one dry-run trial; write its outputs to `out` (if given) and return the summary.
 
     `wrap_camera` / `wrap_robot` (tests: fault injection) wrap the drivers the loop
-    uses, after the model images were taken; `stage_override` replaces the stage.
+    uses, after the model images were taken; `stage_override` replaces the stage;
+    `latency_scale` stretches the measured localization latency (tests: a slow localizer).
     """
     wall0 = time.monotonic()
     if cfg.robot.driver != "sim" or cfg.camera.driver != "sim":
@@ -116,7 +118,7 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
         predictor = make_predictor(stage.predictor, stage.variant, stage.n_t, stage.step, hard_limit=stage.hard_limit)
         loop_robot = wrap_robot(robot) if wrap_robot else robot
         loop_camera = wrap_camera(camera) if wrap_camera else camera
-        loop = SupervisorLoop(robot=loop_robot, camera=loop_camera, worker=InlineWorker(Localizer(model, cfg.localization)),
+        loop = SupervisorLoop(robot=loop_robot, camera=loop_camera, worker=InlineWorker(Localizer(model, cfg.localization), latency_scale),
                               predictor=predictor, stage=stage, follower=follower, kin=kin, T_base_cam_model=T0,
                               T_cam_target_model=model.T_cam0_target, clock=clock, events=events,
                               s_end=stage.hard_limit, frame_period=cfg.camera.frame_period_s)

@@ -15,6 +15,7 @@ A `stages:` mapping in the configuration YAML (degrees/ms at this edge, SI in
         frames_per_step: 5
         warmup_steps: 4              # steps allowed before a valid model must exist
         frame_timeout_ms: 200
+        localization_timeout_ms: 1000 # a frame not localized this long after capture: fault
         pose_gap_ms: 20
         limits: {velocity_deg_s: 10, acceleration_deg_s2: 20, jerk_deg_s3: 200}
 
@@ -57,6 +58,7 @@ class StageConfig:
     warmup_steps: int
     frame_timeout: float  # s
     pose_gap: float  # s
+    localization_timeout: float = 1.0  # s, from capture to result
 
     def theta_allowed(self, theta_p: float | None) -> float:
         """min(theta_p - margin, hard_limit); the hard limit alone without a prediction."""
@@ -94,6 +96,8 @@ def parse_stage(name: str, n: Node) -> StageConfig:
         warmup_steps=n.integer("warmup_steps", 4, min=0, max=1000),
         frame_timeout=n.number("frame_timeout_ms", 200.0, min=0.0, max=60000.0, min_exclusive=True) / 1000.0,
         pose_gap=n.number("pose_gap_ms", 20.0, min=0.0, max=10000.0, min_exclusive=True) / 1000.0,
+        localization_timeout=n.number("localization_timeout_ms", 1000.0, min=0.0, max=60000.0,
+                                      min_exclusive=True) / 1000.0,
     )
     n.done()
     return stage

@@ -135,6 +135,16 @@ def test_repeated_frame_is_a_stale_frame_fault_and_stops(cfg):
     assert s["halt_angle_deg"] < 6.0
 
 
+def test_slow_localization_is_a_timeout_fault_and_stops(cfg):
+    # Every localization takes ~100x its real compute time (seconds): the first frame's result is
+    # still missing when the stage's 1 s timeout expires -> brake, latched, before the first step.
+    spec = DryRunSpec(stage="explore", azimuth=math.radians(90.0), oracle=False)
+    s = run_dry_run(cfg, spec, None, progress=lambda m: None, stage_override=_stage(cfg), latency_scale=100.0)
+    assert s["faults"] == ["localization_timeout"]
+    assert s["halt_reason"] == "fault:localization_timeout"
+    assert s["halt_angle_deg"] < 1e-6 and s["n_predictions"] == 0
+
+
 def test_robot_state_gap_stops(cfg):
     s = _run(cfg, _stage(cfg), wrap_robot=lambda r: _StallingRobot(r, after=400))
     assert s["faults"] == ["state_gap"]

@@ -27,6 +27,7 @@ stages:
     frames_per_step: 5
     warmup_steps: 2
     frame_timeout_ms: 200
+    localization_timeout_ms: 500
     pose_gap_ms: 20
     limits: {velocity_deg_s: 10, acceleration_deg_s2: 40, jerk_deg_s3: 200}
   slow:
@@ -49,6 +50,7 @@ def test_parse_converts_to_si_and_fills_defaults():
     assert fast.step == pytest.approx(1.5 * DEG) and fast.margin == pytest.approx(0.5 * DEG)
     assert fast.hard_limit == pytest.approx(45 * DEG)
     assert fast.frame_timeout == pytest.approx(0.2) and fast.pose_gap == pytest.approx(0.02)
+    assert fast.localization_timeout == pytest.approx(0.5) and slow.localization_timeout == pytest.approx(1.0)
     assert fast.limits == PathLimits(10 * DEG, 40 * DEG, 200 * DEG)
     assert (fast.predictor, fast.variant, fast.n_t, fast.frames_per_step) == ("next_step", "paper", 15, 5)
     assert slow.n_t == 15 and slow.step == pytest.approx(1.5 * DEG)  # paper defaults
@@ -78,6 +80,8 @@ def test_load_stages_from_file(tmp_path):
         ("sampling: stop_and_go", "sampling: sometimes", "stages.fast.sampling", "continuous, stop_and_go"),
         ("predictor: next_step", "predictor: oracle", "stages.fast.predictor", "long_range"),
         ("frames_per_step: 5", "frames_per_step: 0", "stages.fast.frames_per_step", ">= 1"),
+        ("localization_timeout_ms: 500", "localization_timeout_ms: 0", "stages.fast.localization_timeout_ms",
+         "> 0"),
         ("pose_gap_ms: 20", "pose_gap_ms: .inf", "stages.fast.pose_gap_ms", "finite"),
         ("pose_gap_ms: 20", "pose_gap_msec: 20", "stages.fast.pose_gap_msec", "unknown key"),
         ("velocity_deg_s: 10,", "velocity_deg_s: -10,", "stages.fast.limits.velocity_deg_s", "> 0"),

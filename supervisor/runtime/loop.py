@@ -17,7 +17,8 @@ Per tick:
 5. the path follower advances (or brakes) and the robot gets one joint command.
 
 Fail safe: no valid prediction once the warm-up allowance is used up, a stale or
-missing frame, a robot-state gap, a rejected joint command -> brake, latched.
+missing frame, a localization not back within the stage's timeout, a robot-state
+gap, a rejected joint command -> brake, latched.
 The path coordinate `s` equals the viewing angle `theta` for an arc that starts
 at the model view (`ArcPath` rotates the camera rigidly by exactly `s`).
 """
@@ -302,6 +303,10 @@ class SupervisorLoop:
                 self.history.add(st.t, st.q)
             self._last_state_t = st.t
             self._collect(now)
+            oldest = self.worker.oldest_pending()
+            if oldest is not None and now - oldest > self.stage.localization_timeout + 1e-9:
+                self._fault(now, "localization_timeout",
+                            f"frame captured at t={oldest:.4f} not localized after {(now - oldest) * 1000:.0f} ms")
             ps = self.follower.state
             s = ps.s
             at_rest = abs(ps.ds) < _REST_V and abs(ps.dds) < _REST_V

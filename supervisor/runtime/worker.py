@@ -62,5 +62,9 @@ class InlineWorker:
     def busy(self) -> bool:
         return bool(self._pending)
 
+    def oldest_pending(self) -> float | None:
+        """Capture time of the oldest frame whose result has not been released yet."""
+        return min((r.job.t for r in self._pending), default=None)
+
     def next_ready(self) -> float | None:
         return min((r.ready_t for r in self._pending), default=None)
