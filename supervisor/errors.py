@@ -13,6 +13,9 @@ per-frame outcomes (a frame that does not localize) are status values instead.
      +-- RobotFault             the robot refused or cannot execute a command
      |    +-- JointLimitError   a command would break a joint position/velocity limit
      +-- KinematicsError        IK did not converge / pose unreachable
+
+Every error survives pickling (`__reduce__` rebuilds it from its constructor's
+arguments), so one raised in a worker process reaches the parent as itself.
 """
 
 from __future__ import annotations
@@ -34,6 +37,9 @@ class ConfigError(SupervisorError):
         where = f"{self.file}: " if self.file else ""
         super().__init__(f"{where}{key}: {problem}" if key else f"{where}{problem}")
 
+    def __reduce__(self):
+        return type(self), (self.file, self.key, self.problem)
+
 
 class DatasetError(SupervisorError):
     """A dataset on disk cannot be used as it is."""
@@ -43,6 +49,9 @@ class DatasetError(SupervisorError):
         self.problem = problem
         super().__init__(f"{self.file}: {problem}")
 
+    def __reduce__(self):
+        return type(self), (self.file, self.problem)
+
 
 class ModelFormatError(SupervisorError):
     """A target-model file is of another format version or is malformed."""
@@ -51,6 +60,9 @@ class ModelFormatError(SupervisorError):
         self.file = str(file)
         self.problem = problem
         super().__init__(f"{self.file}: {problem}")
+
+    def __reduce__(self):
+        return type(self), (self.file, self.problem)
 
 
 class DriverUnavailable(SupervisorError):
@@ -66,8 +78,12 @@ class CameraTimeout(DriverError, TimeoutError):
 
     def __init__(self, timeout_s: float, detail: str = "") -> None:
         self.timeout_s = timeout_s
+        self.detail = detail
         msg = f"no camera frame within {timeout_s:.3f} s"
         super().__init__(f"{msg}: {detail}" if detail else msg)
+
+    def __reduce__(self):
+        return type(self), (self.timeout_s, self.detail)
 
 
 class RobotFault(SupervisorError):
@@ -85,6 +101,9 @@ class JointLimitError(RobotFault):
         super().__init__(
             f"joint {joint + 1} {kind} {value:.6g} violates limit {limit:.6g}"
         )
+
+    def __reduce__(self):
+        return type(self), (self.joint, self.value, self.limit, self.kind)
 
 
 class KinematicsError(SupervisorError):

@@ -51,3 +51,17 @@ def test_bad_config_names_file_key_and_expectation(tmp_path, old, new, key, prob
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="cannot read configuration"):
         load_config(tmp_path / "none.yaml")
+
+
+def test_errors_survive_pickling():
+    # an error raised in a worker process (dataset generation, evaluation) must reach the parent intact
+    import pickle
+
+    from supervisor.errors import CameraTimeout, ConfigError, DatasetError, JointLimitError, ModelFormatError
+    from supervisor.motion.plan import MotionRejected
+
+    for err in (ConfigError("a.yaml", "stages.x.n_t", "must be >= 4"), DatasetError("d/dataset.json", "broken"),
+                ModelFormatError("m.npz", "version 9"), CameraTimeout(0.2, "no device"),
+                JointLimitError(3, 3.1, 2.9, "position"), MotionRejected("IK failed", 0.3, 2)):
+        back = pickle.loads(pickle.dumps(err))
+        assert type(back) is type(err) and str(back) == str(err) and back.__dict__ == err.__dict__

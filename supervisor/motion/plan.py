@@ -51,6 +51,9 @@ class MotionRejected(SupervisorError):
         where = f" (joint {joint + 1})" if joint is not None else ""
         super().__init__(f"motion rejected at s={self.s:.6g}{where}: {reason}")
 
+    def __reduce__(self):
+        return type(self), (self.reason, self.s, self.joint)
+
 
 @dataclass(frozen=True)
 class PathMotion:
