@@ -121,7 +121,8 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
         loop = SupervisorLoop(robot=loop_robot, camera=loop_camera, worker=InlineWorker(Localizer(model, cfg.localization), latency_scale),
                               predictor=predictor, stage=stage, follower=follower, kin=kin, T_base_cam_model=T0,
                               T_cam_target_model=model.T_cam0_target, clock=clock, events=events,
-                              s_end=stage.hard_limit, frame_period=cfg.camera.frame_period_s)
+                              s_end=stage.hard_limit, frame_period=cfg.camera.frame_period_s,
+                              reference_point=model.points_target.astype(float).mean(axis=0))
         record = loop.run()
     finally:
         events.close()
@@ -197,6 +198,8 @@ def _summary(cfg, stage, scene, spec, record: RunRecord, executed_theta: np.ndar
         "overshoot_of_final_allowance_deg": math.degrees(max_exec - allowed) if math.isfinite(allowed) else None,
         "revision_shortfall_deg": math.degrees(shortfall),
         "n_samples": len(record.samples), "n_predictions": len(record.theta_p_history),
+        "max_consistency_drift_mm": 1000 * max((c[2] for c in record.consistency), default=0.0),
+        "max_consistency_drift_deg": math.degrees(max((c[3] for c in record.consistency), default=0.0)),
         "faults": [e["fault"] for e in events.of_kind("fault")],
         "simulated_time_s": sim_time, "wall_time_s": wall_time,
     }

@@ -16,6 +16,8 @@ A `stages:` mapping in the configuration YAML (degrees/ms at this edge, SI in
         warmup_steps: 4              # steps allowed before a valid model must exist
         frame_timeout_ms: 200
         localization_timeout_ms: 1000 # a frame not localized this long after capture: fault
+        consistency_limit_mm: 2.0    # target-pose consistency guard (0 = off), see runtime.loop
+        consistency_limit_deg: 5.0
         pose_gap_ms: 20
         limits: {velocity_deg_s: 10, acceleration_deg_s2: 20, jerk_deg_s3: 200}
 
@@ -59,6 +61,8 @@ class StageConfig:
     frame_timeout: float  # s
     pose_gap: float  # s
     localization_timeout: float = 1.0  # s, from capture to result
+    consistency_t: float = 0.002  # m; 0 = guard off
+    consistency_r: float = math.radians(5.0)  # rad; 0 = guard off
 
     def theta_allowed(self, theta_p: float | None) -> float:
         """min(theta_p - margin, hard_limit); the hard limit alone without a prediction."""
@@ -98,6 +102,8 @@ def parse_stage(name: str, n: Node) -> StageConfig:
         pose_gap=n.number("pose_gap_ms", 20.0, min=0.0, max=10000.0, min_exclusive=True) / 1000.0,
         localization_timeout=n.number("localization_timeout_ms", 1000.0, min=0.0, max=60000.0,
                                       min_exclusive=True) / 1000.0,
+        consistency_t=n.number("consistency_limit_mm", 2.0, min=0.0, max=1000.0) / 1000.0,
+        consistency_r=math.radians(n.number("consistency_limit_deg", 5.0, min=0.0, max=180.0)),
     )
     n.done()
     return stage

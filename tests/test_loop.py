@@ -42,6 +42,8 @@ class _Wrapped(Camera):
                 return self.last  # the device re-delivers an old frame (same device sequence number)
             if self.mode == "black":
                 return RawFrame(np.zeros_like(raw.image), raw.device_seq, raw.device_time, raw.meta)
+            if self.mode == "shift":  # the camera slipped on its mount: the image moves 12 px, n_i barely changes
+                return RawFrame(np.roll(raw.image, 12, axis=1), raw.device_seq, raw.device_time, raw.meta)
         self.last = raw
         return raw
 
@@ -143,6 +145,18 @@ def test_slow_localization_is_a_timeout_fault_and_stops(cfg):
     assert s["faults"] == ["localization_timeout"]
     assert s["halt_reason"] == "fault:localization_timeout"
     assert s["halt_angle_deg"] < 1e-6 and s["n_predictions"] == 0
+
+
+def test_consistency_guard_stops_when_the_target_pose_drifts_with_inliers_still_high(cfg):
+    # From the third frame on the camera has slipped: poses come out ~3 mm off while n_i stays in the
+    # hundreds, so the n_i predictor would continue. The guard sees the target "move" in the base frame.
+    s = _run(cfg, _stage(cfg), wrap_camera=lambda c: _Wrapped(c, after=2, mode="shift"))
+    assert s["halt_reason"] == "consistency"
+    assert s["halt_angle_deg"] == pytest.approx(1.5, abs=1e-6)  # the step whose frames drifted is the last
+    assert s["max_consistency_drift_mm"] > 2.0 and s["faults"] == []
+    off = _run(cfg, _stage(cfg, consistency_t=0.0, consistency_r=0.0),
+               wrap_camera=lambda c: _Wrapped(c, after=2, mode="shift"))
+    assert off["halt_reason"] == "end_of_path"  # guard off: only n_i is watched, and it stays high
 
 
 def test_robot_state_gap_stops(cfg):

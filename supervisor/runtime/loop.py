@@ -12,6 +12,10 @@ Per tick:
    the predictor -> `theta_p`, `theta_allowed = min(theta_p - margin, hard_limit)`;
    in continuous mode also at most one step beyond the furthest sample (the
    next-step rule: a prediction is trusted one step ahead of its data, no further);
+   the consistency guard compares the step's target poses, carried into the base
+   frame by the robot's kinematics, with the model-time target pose: the target
+   does not move, so a drift beyond the stage's limit means localization is failing
+   now, whatever n_i says -> no further motion (latched);
 4. the gate decides from Ruckig's braking profile whether this is the last tick
    at which a stop still ends at or before `theta_allowed`;
 5. the path follower advances (or brakes) and the robot gets one joint command.
@@ -34,6 +38,7 @@ import numpy as np
 
 from supervisor.clock import Clock
 from supervisor.errors import CameraTimeout, SupervisorError
+from supervisor.geometry import pose_error
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.localizer import predict_target_pose
 from supervisor.motion.braking import PathState
@@ -66,6 +71,7 @@ class Sample:
     status: str
     T_cam_target: np.ndarray | None
     meta: dict[str, Any]
+    T_base_cam: np.ndarray | None = None  # robot kinematics at the frame's time
 
 
 def overshoot(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
@@ -100,6 +106,9 @@ class RunRecord:
     halt_s: float = math.nan
     s_allowed_at_brake: float = math.nan
     theta_p_history: list[tuple[float, float, float]] = field(default_factory=list)  # (t, theta_p, theta_allowed)
+    # Per predictor update: (t, step, mean translation deviation m, mean rotation deviation rad) of
+    # the step's target poses from the model-time pose (the consistency guard's input).
+    consistency: list[tuple[float, int, float, float]] = field(default_factory=list)
     # Every change of the allowance: (t, theta_allowed, where braking at once would have stopped at t).
     allowance_history: list[tuple[float, float, float]] = field(default_factory=list)
     samples: list[Sample] = field(default_factory=list)
@@ -114,7 +123,8 @@ class SupervisorLoop:
 
     def __init__(self, *, robot, camera, worker: InlineWorker, predictor, stage: StageConfig, follower: PathFollower,
                  kin, T_base_cam_model: np.ndarray, T_cam_target_model: np.ndarray, clock: Clock,
-                 events: EventLog, s_end: float, frame_period: float) -> None:
+                 events: EventLog, s_end: float, frame_period: float,
+                 reference_point: np.ndarray | None = None) -> None:
         self.robot = robot
         self.camera = camera
         self.worker = worker
@@ -124,6 +134,10 @@ class SupervisorLoop:
         self.kin = kin
         self.T_base_cam_model = T_base_cam_model
         self.T_cam_target_model = T_cam_target_model
+        self.T_base_target_model = T_base_cam_model @ T_cam_target_model
+        # where the guard measures translation (target frame; e.g. the model points' centroid)
+        self.reference_point = np.zeros(3) if reference_point is None else np.asarray(reference_point, float)
+        self._guard_stop: float | None = None  # allowance latched by the consistency guard
         self.clock = clock
         self.events = events
         self.s_end = min(float(s_end), stage.hard_limit)
@@ -174,6 +188,8 @@ class SupervisorLoop:
                 # variant would stop at once); the configured warm-up allowance is granted regardless.
                 allowed = max(allowed, warm)
                 allow_next = allow_next or s_now + self.stage.step <= warm + 1e-12
+            if self._guard_stop is not None:
+                allowed, allow_next = min(allowed, self._guard_stop), False
             self._theta_allowed = allowed
             self._allow_next = allow_next
             self.record.theta_p_history.append((t, pred.boundary, allowed))
@@ -184,6 +200,8 @@ class SupervisorLoop:
             warm = self._warmup_allowance()
             stop_here = self.follower.braking.furthest(self.follower.state)[0]
             self._theta_allowed = max(warm, stop_here) if s_now < warm - 1e-12 else stop_here
+            if self._guard_stop is not None:
+                self._theta_allowed = min(self._theta_allowed, self._guard_stop)
             self._allow_next = s_now + self.stage.step <= self._theta_allowed + 1e-12
             self.record.theta_p_history.append((t, math.nan, self._theta_allowed))
             self._record_allowance(t)
@@ -236,7 +254,8 @@ class SupervisorLoop:
             theta = viewing_angle(self.T_base_cam_model, job.T_base_cam)
             if res.ok:
                 self._last_ok = (job.T_base_cam, res.T_cam_target)
-            s = Sample(job.t, job.step, theta, res.n_inliers, res.status.name, res.T_cam_target, job.meta)
+            s = Sample(job.t, job.step, theta, res.n_inliers, res.status.name, res.T_cam_target, job.meta,
+                       job.T_base_cam)
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
             self._awaiting[job.step] -= 1
@@ -261,7 +280,27 @@ class SupervisorLoop:
                                  "params": None if fit is None else getattr(fit, "params", None),
                                  "scale": 1.0 if fit is None else getattr(fit, "scale", 1.0),
                                  "boundary": None if pred is None else pred.boundary})
+        self._check_consistency(now, step, samples)
         self._set_prediction(now, pred)
+
+    def _check_consistency(self, now: float, step: int, samples: list[Sample]) -> None:
+        """The consistency guard: trip (latched) when the step's mean target-pose drift exceeds the limit."""
+        errs = [pose_error(s.T_base_cam @ s.T_cam_target, self.T_base_target_model, self.reference_point)
+                for s in samples if s.T_cam_target is not None and s.T_base_cam is not None]
+        if not errs:
+            return  # nothing localized: n_i = 0 speaks for itself
+        e_t = float(np.mean([e[0] for e in errs]))
+        e_r = float(np.mean([e[1] for e in errs]))
+        self.record.consistency.append((now, step, e_t, e_r))
+        self.events.emit(now, "consistency", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
+                         n_frames=len(errs))
+        st = self.stage
+        tripped = (st.consistency_t > 0 and e_t > st.consistency_t) or (st.consistency_r > 0 and e_r > st.consistency_r)
+        if tripped and self._guard_stop is None:
+            self._guard_stop = self.follower.braking.furthest(self.follower.state)[0]
+            self.events.emit(now, "consistency_guard", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
+                             limit_mm=st.consistency_t * 1000, limit_deg=math.degrees(st.consistency_r),
+                             s_deg=math.degrees(self.follower.state.s))
 
     # -- faults and halts ----------------------------------------------------------------
     def _fault(self, now: float, kind: str, detail: str) -> None:
@@ -366,7 +405,8 @@ class SupervisorLoop:
             if nxt - s < 1e-9:
                 self._halt(now, "end_of_path")
             elif not self._allow_next or nxt > self._theta_allowed + 1e-12:
-                self._halt(now, "boundary")  # next step not permitted: stay stopped (latched)
+                # next step not permitted: stay stopped (latched)
+                self._halt(now, "consistency" if self._guard_stop is not None else "boundary")
             else:
                 self._step += 1
                 self._target_s = nxt
@@ -405,4 +445,5 @@ class SupervisorLoop:
         self._target_s = min(self.s_end, self._theta_allowed)
         idle = at_rest and not self._closing and not self.worker.busy
         if idle and s >= self._target_s - 1e-9:
-            self._halt(now, "end_of_path" if s >= self.s_end - 1e-9 else "boundary")
+            reason = "consistency" if self._guard_stop is not None else "boundary"
+            self._halt(now, "end_of_path" if s >= self.s_end - 1e-9 else reason)
