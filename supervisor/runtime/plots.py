@@ -1,4 +1,5 @@
-"""Dry-run timeline plot: path angle over time with predictions and brakes; n_i vs angle with fits."""
+"""Dry-run timeline plot: path angle over time with predictions and brakes; n_i vs angle with fits;
+the consistency guard's target-pose drift vs angle beside the ground-truth error."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
 
     from supervisor.prediction.emg import emg
 
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 8))
+    fig, (ax1, ax2, ax3) = plt.subplots(3, 1, figsize=(9, 11))
     t = np.asarray(record.trajectory_t)
     ax1.plot(t, np.degrees(record.trajectory_s), "k-", lw=1.2, label="path angle s")
     if record.theta_p_history:
@@ -57,6 +58,27 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
     ax2.set_ylim(bottom=0)
     ax2.legend(fontsize=7)
     ax2.grid(alpha=0.3)
+
+    step_theta: dict[int, float] = {}
+    for smp in record.samples:
+        step_theta[smp.step] = max(step_theta.get(smp.step, -math.inf), smp.theta)
+    drift = [(math.degrees(step_theta[k]), e_t * 1000) for _, k, e_t, _ in record.consistency if k in step_theta]
+    if drift:
+        d = np.array(drift)
+        ax3.plot(d[:, 0], d[:, 1], "o-", ms=3, color="tab:blue", label="target-pose drift (run, step mean)")
+    if oracle is not None:
+        te = np.array(oracle["t_err"], float) * 1000
+        ok = np.isfinite(te)
+        ax3.plot(np.degrees(np.asarray(oracle["theta"]))[ok], te[ok], "s", ms=3, color="tab:gray", alpha=0.7,
+                 label="true translation error (oracle sweep, mean)")
+    limit = summary.get("consistency_limit_mm")
+    if limit:
+        ax3.axhline(limit, color="tab:red", ls="--", lw=0.8, label="guard limit")
+    ax3.set_xlabel("viewing angle theta [deg]")
+    ax3.set_ylabel("translation [mm]")
+    ax3.set_ylim(0, max(6.0, 1.2 * (limit or 0)))
+    ax3.legend(fontsize=7)
+    ax3.grid(alpha=0.3)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")
