@@ -35,3 +35,32 @@ def test_sweep_picks_the_largest_safe_operating_point():
     assert best.operating_point == 10.0 and best.stops == (10.0, 11.0, 12.0)
     assert best.mean_spl == pytest.approx(11.0)
     assert [c.incursion_rate for c in curve][9:12] == [0.0, 0.0, pytest.approx(1 / 3)]
+
+
+def _artifacts(drift_mm_at: dict[int, float]) -> list:
+    """A 21-position arc, 3 frames each: n_i decays smoothly, ground-truth error stays tiny, the
+    consistency drift is 0.1 mm except where given."""
+    from supervisor.localization.offline import FrameArtifact
+
+    rows = []
+    for p in range(21):
+        theta = math.radians(2.25 * p)
+        n = int(round(400 * math.exp(-theta / math.radians(12.0)))) + 5
+        for i in range(3):
+            rows.append(FrameArtifact(3 * p + i, p, theta, 0.0, n, n + 10, 0.0002, math.radians(0.05), 0.5, "OK",
+                                      0.05, {}, None, drift_mm_at.get(p, 0.1) / 1000, math.radians(0.1)))
+    return rows
+
+
+def test_evaluation_guard_stops_next_step_where_the_drift_crosses_the_limit():
+    from supervisor.evaluation.experiments import N_T, evaluate_dataset
+
+    plain = evaluate_dataset("smooth", "arc", _artifacts({}))
+    drifting = evaluate_dataset("drift", "arc", _artifacts({p: 2.5 for p in range(9, 21)}))
+    k = N_T.index(4)  # a low threshold: n_i alone lets the arc run far
+    assert plain.stops["next_step_logfit_guard"] == plain.stops["next_step_logfit"]  # drift 0.1 mm: never trips
+    assert plain.stops["next_step_logfit"][k] > math.radians(2.25 * 9)
+    assert drifting.stops["next_step_logfit_guard"][k] == pytest.approx(math.radians(2.25 * 9))
+    assert drifting.stops["next_step_logfit"] == plain.stops["next_step_logfit"]  # unguarded: unchanged
+    off = evaluate_dataset("drift", "arc", _artifacts({p: 2.5 for p in range(9, 21)}), guard=(0.0, 0.0))
+    assert off.stops["next_step_logfit_guard"] == off.stops["next_step_logfit"]

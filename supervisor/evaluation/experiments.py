@@ -52,6 +52,8 @@ IMPROVED = tuple(v for v in VARIANTS if v != "paper")
 def systems() -> list[str]:
     out = ["static", "long_range", "next_step", "mlp"]
     out += [f"long_range_{v}" for v in IMPROVED] + [f"next_step_{v}" for v in IMPROVED]
+    # next-step with the supervisor loop's consistency guard (target-pose drift in the base frame)
+    out += ["next_step_guard"] + [f"next_step_{v}_guard" for v in IMPROVED]
     return out
 
 
@@ -66,25 +68,36 @@ class DatasetResult:
     n_mean: list[float]
 
 
-def _per_position(rows, kind: str) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray], np.ndarray, np.ndarray]:
+def _per_position(rows, kind: str):
+    """Per sampling position: mean coordinate, samples (x, n_i), mean errors against ground truth,
+    and mean consistency drift (t, r) over the localized frames (nan where none localized)."""
     var = "theta" if kind == "arc" else "x"
     groups: dict[int, list] = {}
     for r in rows:
         groups.setdefault(r.position, []).append(r)
-    xs, xsamp, nsamp, te, re = [], [], [], [], []
+    xs, xsamp, nsamp, te, re, dt, dr = [], [], [], [], [], [], []
     for _, rs in sorted(groups.items()):
         xs.append(float(np.mean([getattr(r, var) for r in rs])))
         xsamp.append(np.array([getattr(r, var) for r in rs], float))
         nsamp.append(np.array([r.n_inliers for r in rs], float))
         te.append(float(np.mean([r.t_err if r.status == "OK" and math.isfinite(r.t_err) else math.inf for r in rs])))
         re.append(float(np.mean([r.r_err if r.status == "OK" and math.isfinite(r.r_err) else math.inf for r in rs])))
-    return np.array(xs), xsamp, nsamp, np.array(te), np.array(re)
+        ok = [r for r in rs if r.status == "OK" and math.isfinite(r.drift_t)]
+        dt.append(float(np.mean([r.drift_t for r in ok])) if ok else math.nan)
+        dr.append(float(np.mean([r.drift_r for r in ok])) if ok else math.nan)
+    return np.array(xs), xsamp, nsamp, np.array(te), np.array(re), np.array(dt), np.array(dr)
 
 
-def evaluate_dataset(name: str, kind: str, rows: list) -> DatasetResult:
-    """All systems at all operating points on one dataset's per-frame artifacts."""
+def evaluate_dataset(name: str, kind: str, rows: list, guard: tuple[float, float] = (0.002, math.radians(5.0))
+                     ) -> DatasetResult:
+    """All systems at all operating points on one dataset's per-frame artifacts.
+
+    `guard` = (translation m, rotation rad) limits of the consistency guard (0 = that limit off),
+    applied as the supervisor loop does: after a position's frames, a mean drift beyond a limit
+    means no further motion.
+    """
     axis = ANGLE if kind == "arc" else TRANSLATION
-    x, xsamp, nsamp, te, re = _per_position(rows, kind)
+    x, xsamp, nsamp, te, re, dt, dr = _per_position(rows, kind)
     if len(x) < 2:
         raise DatasetError(Path(name), f"{len(x)} sampling positions; evaluation needs at least 2")
     x_max = float(x[-1])
@@ -92,6 +105,9 @@ def evaluate_dataset(name: str, kind: str, rows: list) -> DatasetResult:
     actual = {k: actual_boundary(x, te, re, tt, tr) for k, (tt, tr) in TOLERANCES.items()}
     k_lr = min(K_POSITIONS[kind], len(x))
     stops: dict[str, list[float]] = {}
+    with np.errstate(invalid="ignore"):
+        tripped = ((guard[0] > 0) & (dt > guard[0])) | ((guard[1] > 0) & (dr > guard[1]))
+    guard_stop = float(x[int(np.argmax(tripped))]) if tripped.any() else math.inf
 
     def prefix(k: int) -> tuple[np.ndarray, np.ndarray]:
         return axis.to_fit(np.concatenate(xsamp[:k + 1])), np.concatenate(nsamp[:k + 1])
@@ -122,6 +138,7 @@ def evaluate_dataset(name: str, kind: str, rows: list) -> DatasetResult:
                     break
             out.append(stop)
         stops[f"next_step{suffix}"] = out
+        stops[f"next_step{suffix}_guard"] = [min(s, guard_stop) for s in out]
     # MLP, long-range style (the paper's Table I).
     mlp = MLPPredictor(15, float(np.median(np.diff(x))), axis, x_max)
     xs_si = np.concatenate(xsamp[:k_lr])
@@ -143,7 +160,8 @@ def _job(args: tuple[str, str, str | None]) -> DatasetResult:
     if not ds.has_ground_truth:
         raise DatasetError(ds.root, "no ground-truth target poses: evaluation needs them (prediction does not)")
     rows = localized(Path(ds_root), Path(cache_dir), cfg.localization)
-    return evaluate_dataset(ds.name, ds.kind, rows)
+    stage = cfg.stage(None)
+    return evaluate_dataset(ds.name, ds.kind, rows, (stage.consistency_t, stage.consistency_r))
 
 
 def _curves(results: list[DatasetResult], kind: str) -> dict[str, Any]:

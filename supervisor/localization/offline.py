@@ -29,7 +29,8 @@ from supervisor.localization.model import BoxROI, TargetModel, build_model
 from supervisor.localization.settings import LocalizerSettings
 
 CSV_COLUMNS = ["frame", "position", "theta_deg", "x_mm", "n_inliers", "n_matches", "t_err_mm", "r_err_deg",
-               "reproj_px", "status", "latency_ms", "clahe_ms", "sift_ms", "match_ms", "pnp_ms", "roi"]
+               "reproj_px", "status", "latency_ms", "clahe_ms", "sift_ms", "match_ms", "pnp_ms", "roi",
+               "drift_mm", "drift_deg"]
 
 
 @dataclass(frozen=True)
@@ -49,13 +50,18 @@ class FrameArtifact:
     latency: float  # s
     timings: dict[str, float]
     roi: tuple[int, int, int, int] | None
+    # Consistency: the estimated target pose carried into the base frame by the recorded robot pose,
+    # against the model-time target pose (translation at the model points' centroid; nan if not localized).
+    drift_t: float = math.nan  # m
+    drift_r: float = math.nan  # rad
 
     def row(self) -> list[object]:
         ms = lambda k: f"{self.timings.get(k, float('nan')) * 1000:.2f}"  # noqa: E731
         return [self.frame, self.position, f"{math.degrees(self.theta):.4f}", f"{self.x * 1000:.3f}",
                 self.n_inliers, self.n_matches, f"{self.t_err * 1000:.4f}", f"{math.degrees(self.r_err):.4f}",
                 f"{self.reproj_px:.3f}", self.status, f"{self.latency * 1000:.2f}", ms("clahe"), ms("sift"),
-                ms("match"), ms("pnp"), "" if self.roi is None else "x".join(map(str, self.roi))]
+                ms("match"), ms("pnp"), "" if self.roi is None else "x".join(map(str, self.roi)),
+                f"{self.drift_t * 1000:.4f}", f"{math.degrees(self.drift_r):.4f}"]
 
 
 def model_from_dataset(ds: Dataset, settings: LocalizerSettings) -> TargetModel:
@@ -78,6 +84,8 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
     """Localize every sample frame, using the ROI predicted from robot motion and the last pose."""
     loc = Localizer(model, settings)
     out: list[FrameArtifact] = []
+    T_base_target_model = model.T_base_cam0 @ model.T_cam0_target
+    centroid = model.points_target.astype(float).mean(axis=0)
     T_start = ds.frames[0].T_base_cam(ds.T_flange_cam)
     prev: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target) of the last success
     for k, rec in enumerate(ds.frames):
@@ -89,15 +97,17 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
         else:
             hint = predict_target_pose(T_base_cam, model.T_base_cam0, model.T_cam0_target)
         res = loc.localize(ds.load_image(rec), hint)
-        t_err = r_err = float("nan")
+        t_err = r_err = drift_t = drift_r = float("nan")
         if res.status is Status.OK:
             prev = (T_base_cam, res.T_cam_target)
+            drift_t, drift_r = pose_error(T_base_cam @ res.T_cam_target, T_base_target_model, centroid)
             if rec.T_cam_target_true is not None:
                 t_err, r_err = pose_error(res.T_cam_target, rec.T_cam_target_true, ds.reference_point)
         out.append(FrameArtifact(rec.index, rec.position, viewing_angle(model.T_base_cam0, T_base_cam),
                                  translation_from_start(T_start, T_base_cam), res.n_inliers, res.n_matches,
                                  t_err, r_err, res.reprojection_error_px, res.status.name,
-                                 res.timings.get("total", float("nan")), dict(res.timings), res.roi))
+                                 res.timings.get("total", float("nan")), dict(res.timings), res.roi,
+                                 drift_t, drift_r))
         if progress:
             progress(k + 1, len(ds.frames))
     return out
