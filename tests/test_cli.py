@@ -313,3 +313,42 @@ def test_config_copy_with_sim_drivers_is_accepted(dataset: Path, model_file: Pat
     rc, _, err = run(["--config", cfg, "localize", dataset, "--model", model_file, "-o", out], capfd)
     assert rc == 0, err
     assert (out / "localization.csv").is_file()
+
+
+# ---------------------------------------------------------------------------- evaluate
+
+def test_evaluate_writes_tables_and_is_the_same_with_a_warm_cache(dataset: Path, tmp_path: Path) -> None:
+    import json
+
+    bench = tmp_path / "bench"
+    copy_dataset(dataset, bench / dataset.name)
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(bench), "-o", str(out), "--jobs", "1"]) == 0
+    for name in ("results.json", "tables.md", "spl_vs_incursion_arc.png"):
+        assert (out / name).is_file(), name
+    first = json.loads((out / "results.json").read_text())
+    assert set(first["arc"]) == {"2mm_3deg", "4mm_10deg"}
+    assert {"static", "next_step", "next_step_logfit_guard", "long_range", "mlp"} <= set(first["arc"]["4mm_10deg"])
+    assert "Table II" in (out / "tables.md").read_text()
+    assert (out / "cache" / f"{dataset.name}.csv").is_file()
+    assert main(["evaluate", str(bench), "-o", str(out), "--jobs", "1"]) == 0  # cache hit this time
+    assert json.loads((out / "results.json").read_text()) == first
+
+
+def test_evaluate_empty_directory_and_missing_ground_truth(dataset: Path, tmp_path: Path,
+                                                           capfd: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "empty").mkdir()
+    assert main(["evaluate", str(tmp_path / "empty"), "-o", str(tmp_path / "e1")]) == 2
+    err = capfd.readouterr().err
+    assert "no datasets found" in err and "Traceback" not in err
+    bench = tmp_path / "nogt"
+    ds = copy_dataset(dataset, bench / dataset.name)
+    frames = (ds / "frames.csv").read_text().splitlines()
+    header = frames[0].split(",")
+    gt = [i for i, h in enumerate(header) if h.startswith("T_cam_target_true")]
+    rows = [",".join("" if i in gt else v for i, v in enumerate(line.split(","))) for line in frames[1:]]
+    (ds / "frames.csv").write_text("\n".join([frames[0], *rows]) + "\n")
+    assert main(["evaluate", str(bench), "-o", str(tmp_path / "e2"), "--jobs", "1"]) == 2
+    err = capfd.readouterr().err
+    assert "ground-truth" in err and "Traceback" not in err
+    assert not (tmp_path / "e2" / "results.json").exists()

@@ -52,15 +52,20 @@ def _artifacts(drift_mm_at: dict[int, float]) -> list:
     return rows
 
 
-def test_evaluation_guard_stops_next_step_where_the_drift_crosses_the_limit():
-    from supervisor.evaluation.experiments import N_T, evaluate_dataset
+def test_evaluation_guard_stops_next_step_where_the_drift_crosses_half_the_tolerance():
+    from supervisor.evaluation.experiments import N_T, _stop, evaluate_dataset
 
     plain = evaluate_dataset("smooth", "arc", _artifacts({}))
-    drifting = evaluate_dataset("drift", "arc", _artifacts({p: 2.5 for p in range(9, 21)}))
+    # drift 1.5 mm from position 9 (trips the 2 mm/3 deg guard at 1 mm), 2.5 mm from 13 (the 4 mm one at 2 mm)
+    drift = {**{p: 1.5 for p in range(9, 13)}, **{p: 2.5 for p in range(13, 21)}}
+    drifting = evaluate_dataset("drift", "arc", _artifacts(drift))
     k = N_T.index(4)  # a low threshold: n_i alone lets the arc run far
-    assert plain.stops["next_step_logfit_guard"] == plain.stops["next_step_logfit"]  # drift 0.1 mm: never trips
-    assert plain.stops["next_step_logfit"][k] > math.radians(2.25 * 9)
-    assert drifting.stops["next_step_logfit_guard"][k] == pytest.approx(math.radians(2.25 * 9))
+    assert plain.guard_stop == {"2mm_3deg": math.inf, "4mm_10deg": math.inf}  # drift 0.1 mm: never trips
+    assert _stop(plain, "next_step_logfit_guard", k, "4mm_10deg") == plain.stops["next_step_logfit"][k]
+    assert plain.stops["next_step_logfit"][k] > math.radians(2.25 * 13)
+    assert drifting.guard_stop["2mm_3deg"] == pytest.approx(math.radians(2.25 * 9))
+    assert drifting.guard_stop["4mm_10deg"] == pytest.approx(math.radians(2.25 * 13))
+    assert _stop(drifting, "next_step_logfit_guard", k, "4mm_10deg") == pytest.approx(math.radians(2.25 * 13))
     assert drifting.stops["next_step_logfit"] == plain.stops["next_step_logfit"]  # unguarded: unchanged
-    off = evaluate_dataset("drift", "arc", _artifacts({p: 2.5 for p in range(9, 21)}), guard=(0.0, 0.0))
-    assert off.stops["next_step_logfit_guard"] == off.stops["next_step_logfit"]
+    off = evaluate_dataset("drift", "arc", _artifacts(drift), guard_fraction=0.0)
+    assert off.guard_stop == {"2mm_3deg": math.inf, "4mm_10deg": math.inf}

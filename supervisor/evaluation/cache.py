@@ -64,4 +64,6 @@ def localized(ds_root: Path, cache_dir: Path, settings: LocalizerSettings) -> li
     rows = offline.localize_dataset(ds, model, settings)
     offline.write_atomic(csv_path, offline.artifacts_csv(rows))
     offline.write_atomic(key_path, key.encode())
-    return rows
+    # Return what a later cache hit will return (the CSV's rounding), so results never depend on
+    # whether the cache was warm.
+    return read_artifacts(csv_path)
