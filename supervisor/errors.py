@@ -41,28 +41,24 @@ class ConfigError(SupervisorError):
         return type(self), (self.file, self.key, self.problem)
 
 
-class DatasetError(SupervisorError):
+class _FileError(SupervisorError):
+    """An error about one file: `file: problem`."""
+
+    def __init__(self, file: str | Path, problem: str) -> None:
+        self.file = str(file)
+        self.problem = problem
+        super().__init__(f"{self.file}: {problem}")
+
+    def __reduce__(self):
+        return type(self), (self.file, self.problem)
+
+
+class DatasetError(_FileError):
     """A dataset on disk cannot be used as it is."""
 
-    def __init__(self, file: str | Path, problem: str) -> None:
-        self.file = str(file)
-        self.problem = problem
-        super().__init__(f"{self.file}: {problem}")
 
-    def __reduce__(self):
-        return type(self), (self.file, self.problem)
-
-
-class ModelFormatError(SupervisorError):
+class ModelFormatError(_FileError):
     """A target-model file is of another format version or is malformed."""
-
-    def __init__(self, file: str | Path, problem: str) -> None:
-        self.file = str(file)
-        self.problem = problem
-        super().__init__(f"{self.file}: {problem}")
-
-    def __reduce__(self):
-        return type(self), (self.file, self.problem)
 
 
 class DriverUnavailable(SupervisorError):

@@ -207,6 +207,29 @@ def levenberg_marquardt(fun, jac, u0: np.ndarray, max_nfev: int) -> tuple[np.nda
     return np.asarray(u, float), int(info["nfev"]), ier in (1, 2, 3, 4), str(message)
 
 
+def lm_attempt(fun, jac, u0: np.ndarray, max_nfev: int) -> tuple[np.ndarray | None, int, str]:
+    """One start of a multi-start fit: (solution or None, function evaluations, why it failed).
+
+    Numerical exceptions and non-convergence become a reason; a `TimeoutError` (the caller's
+    time budget, raised from inside `fun`) passes through.
+    """
+    try:
+        u, k, success, message = levenberg_marquardt(fun, jac, u0, max_nfev)
+    except (ValueError, TypeError, FloatingPointError, ZeroDivisionError, OverflowError) as exc:
+        return None, 0, f"no convergence: {exc}"
+    if not (success and np.all(np.isfinite(u))):
+        return None, k, f"no convergence: {message}"
+    return u, k, ""
+
+
+def sum_of_squares(fun, x: np.ndarray) -> float:
+    """sum(fun(x)^2), or inf where it is not finite: ranks the start points of a multi-start fit."""
+    with np.errstate(all="ignore"):
+        r = fun(x)
+    c = float(r @ r)
+    return c if math.isfinite(c) else math.inf
+
+
 def solve_lsq(resid, jac, starts, bounds: Bounds, max_nfev: int, deadline: float, exhaustive: bool = EXHAUSTIVE):
     """Multi-start Levenberg-Marquardt (MINPACK) for the 3 EMG parameters -> (params, covariance, nfev) or a
     reason string. Solved in (log alpha, log K, mu) so alpha, K stay positive without a bounded (slower)
@@ -234,14 +257,8 @@ def solve_lsq(resid, jac, starts, bounds: Bounds, max_nfev: int, deadline: float
         with np.errstate(all="ignore"):
             return jac(p) * chain(p)
 
-    def start_cost(start: np.ndarray) -> float:
-        with np.errstate(all="ignore"):
-            r = resid(start)
-        c = float(r @ r)
-        return c if math.isfinite(c) else math.inf
-
     # Most promising start first; the others only if it yields no valid fit (each LM run costs ~1 ms).
-    starts = sorted((np.clip(np.asarray(s, float), lo, hi) for s in starts), key=start_cost)
+    starts = sorted((np.clip(np.asarray(s, float), lo, hi) for s in starts), key=lambda s: sum_of_squares(resid, s))
     best = None
     reason = "no start point"
     nfev = 0
@@ -250,18 +267,15 @@ def solve_lsq(resid, jac, starts, bounds: Bounds, max_nfev: int, deadline: float
             break
         u0 = np.array([math.log(start[0]), math.log(start[1]), start[2]])
         try:
-            u, k, success, message = levenberg_marquardt(r_u, j_u, u0, max_nfev)
+            u, k, why = lm_attempt(r_u, j_u, u0, max_nfev)
         except TimeoutError:
             reason = "time budget exceeded"
             break
-        except (ValueError, TypeError, FloatingPointError, ZeroDivisionError, OverflowError) as exc:
-            reason = f"no convergence: {exc}"
-            continue
         nfev += k
-        p = to_p(u) if np.all(np.isfinite(u)) and np.all(np.abs(u[:2]) < 700) else None
-        if p is None or not success:
-            reason = f"no convergence: {message}"
+        if u is None or np.any(np.abs(u[:2]) >= 700):
+            reason = why or "no convergence: alpha or K overflows"
             continue
+        p = to_p(u)
         if np.any(p < lo) or np.any(p > hi):
             # The unconstrained optimum lies beyond a bound (typically K -> large on a curve that has
             # hardly started to decay): take the bounded optimum instead (trust-region reflective).

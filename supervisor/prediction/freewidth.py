@@ -17,8 +17,8 @@ import math
 import time
 
 import numpy as np
-from supervisor.prediction.emg import (FitResult, covariance, emg, initial_guesses, levenberg_marquardt, log_emg,
-                                       log_emg_gradient)
+from supervisor.prediction.emg import (FitResult, covariance, emg, initial_guesses, lm_attempt, log_emg,
+                                       log_emg_gradient, sum_of_squares)
 
 SCALE_BOUNDS = (0.3, 200.0)  # fit units
 K_BOUNDS = (2e-3, 100.0)  # down to the Gaussian limit (K -> 0): a shoulder without an exponential tail
@@ -80,27 +80,19 @@ def fit_free_width(x: np.ndarray, n: np.ndarray, *, warm: tuple[float, float, fl
             g = log_emg_gradient(xu, a, K, mu, s) * np.array([a, K, 1.0, s])
             return (g * (1.0 / (1.0 + np.exp(-lf)))[:, None])[inv]  # d log(1 + f) = f / (1 + f) d log f
 
-    def start_cost(u0: np.ndarray) -> float:
-        with np.errstate(all="ignore"):
-            r = resid(u0)
-        c = float(r @ r)
-        return c if math.isfinite(c) else math.inf
-
     best, reason, nfev = None, "no start point", 0
-    for u0 in sorted(_starts(x, n, warm), key=start_cost):  # most promising first; next only on failure
+    # most promising start first; the next only on failure
+    for u0 in sorted(_starts(x, n, warm), key=lambda u: sum_of_squares(resid, u)):
         if best is not None:
             break
         try:
-            u, k, success, message = levenberg_marquardt(resid, jac, u0, max_nfev)
+            u, k, why = lm_attempt(resid, jac, u0, max_nfev)
         except TimeoutError:
             reason = "time budget exceeded"
             break
-        except (ValueError, TypeError, FloatingPointError, ZeroDivisionError, OverflowError) as exc:
-            reason = f"no convergence: {exc}"
-            continue
         nfev += k
-        if not (success and np.all(np.isfinite(u))):
-            reason = f"no convergence: {message}"
+        if u is None:
+            reason = why
             continue
         a, K, mu, s = params(u)
         r = resid(u)
