@@ -60,6 +60,28 @@ def tables(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+_VARIANT_COLORS = {"": "tab:blue", "logfit": "tab:orange", "lcb": "tab:green", "logfit_lcb": "tab:red",
+                   "fw": "tab:purple", "fw_lcb": "tab:brown"}
+
+
+def _style(system: str) -> tuple[str, str]:
+    """(colour, line style): colour by model variant, style by predictor (long-range dotted, next-step
+    solid, guarded next-step dash-dot); static black dashed, MLP grey."""
+    if system == "static":
+        return "k", "--"
+    if system == "mlp":
+        return "tab:gray", "-"
+    name = system.removesuffix("_guard")
+    kind, _, variant = name.partition("_")  # "long_range_x" -> ("long", "range_x")
+    if kind == "long":
+        variant = variant.removeprefix("range").lstrip("_")
+        ls = ":"
+    else:
+        variant = variant.removeprefix("step").lstrip("_")
+        ls = "-." if system.endswith("_guard") else "-"
+    return _VARIANT_COLORS.get(variant, "tab:olive"), ls
+
+
 def plot(report: dict[str, Any], kind: str) -> bytes:
     import matplotlib
 
@@ -73,8 +95,8 @@ def plot(report: dict[str, Any], kind: str) -> bytes:
         for system, d in per.items():
             xs = [c["incursion_rate"] for c in d["curve"]]
             ys = [c["mean_spl"] for c in d["curve"]]
-            style = "k--" if system == "static" else "-"
-            ax.plot(xs, ys, style, lw=1.8 if system in ("static", "next_step", "long_range") else 1.0,
+            color, ls = _style(system)
+            ax.plot(xs, ys, color=color, ls=ls, lw=1.8 if system in ("static", "next_step", "long_range") else 1.0,
                     label=f"{system} ({_fmt(d['max_mean_spl_zero_incursion'])})")
         ax.set_xlabel("incursion rate R_i")
         ax.set_ylabel(f"mean SPL [{unit}]")
