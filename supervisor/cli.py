@@ -123,13 +123,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_dry_run(args: argparse.Namespace) -> int:
     """The product's main job: one gated arc on the sim robot with the synthetic camera and the real pipeline."""
-    from supervisor.dryrun import DryRunSpec, run_dry_run
+    from supervisor.dryrun import DryRunSpec, run_dry_run, run_replay
 
     cfg = _config(args)
-    spec = DryRunSpec(stage=args.stage or cfg.default_stage, azimuth=math.radians(args.azimuth),
-                      sampling=args.sampling, scene=args.scene, seed=args.seed, oracle=not args.no_oracle)
     out = Path(args.out)
-    s = run_dry_run(cfg, spec, out)
+    if args.replay:
+        s = run_replay(cfg, args.replay, args.stage or cfg.default_stage, out)
+    else:
+        spec = DryRunSpec(stage=args.stage or cfg.default_stage, azimuth=math.radians(args.azimuth),
+                          sampling=args.sampling, scene=args.scene, seed=args.seed, oracle=not args.no_oracle)
+        s = run_dry_run(cfg, spec, out)
     print(f"stage {s['stage']} ({s['sampling']}), scene {s['scene']}, azimuth {s['azimuth_deg']:g} deg: "
           f"halted at {s['halt_angle_deg']:.2f} deg ({s['halt_reason']})")
     if s.get("predicted_boundary_deg") is not None:
@@ -196,6 +199,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="override the stage's sampling mode")
     dr.add_argument("--seed", type=int, default=0)
     dr.add_argument("--no-oracle", action="store_true", help="skip the ground-truth sweep (no actual boundary)")
+    dr.add_argument("--replay", default=None, metavar="DATASET",
+                    help="replay a recorded stop-and-go arc through the loop instead of rendering "
+                         "(the scene, azimuth and sampling come from the recording)")
     dr.add_argument("-o", "--out", default="out/dry-run")
     dr.set_defaults(func=cmd_dry_run)
 

@@ -88,11 +88,7 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
     `latency_scale` stretches the measured localization latency (tests: a slow localizer).
     """
     wall0 = time.monotonic()
-    if cfg.robot.driver != "sim" or cfg.camera.driver != "sim":
-        # A dry-run is simulation by definition: never let a hardware config silently run on the sim.
-        raise ConfigError(Path(cfg.file), "robot.driver" if cfg.robot.driver != "sim" else "camera.driver",
-                          "the dry-run needs the sim robot and sim camera; this config selects "
-                          f"robot '{cfg.robot.driver}', camera '{cfg.camera.driver}'")
+    _require_sim(cfg)
     stage: StageConfig = stage_override or cfg.stage(spec.stage)
     if spec.sampling is not None:
         stage = dataclasses.replace(stage, sampling=spec.sampling)
@@ -111,6 +107,31 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
     sim.move_camera_to(T0)
 
     path = ArcPath(T0, pivot_base, spec.azimuth)
+    record, events, executed_theta = _gated_run(cfg, stage, clock, kin, sim, robot, camera, model, path, T0,
+                                                cfg.camera.frame_period_s, out, progress, wrap_camera=wrap_camera,
+                                                wrap_robot=wrap_robot, latency_scale=latency_scale)
+    oracle = _oracle(cfg, renderer, model, path, T0, stage.hard_limit, spec.seed,
+                     scene.reference_point_in_target()) if spec.oracle else None
+    summary = _summary(cfg, stage, scene.name, spec, record, executed_theta, oracle, events, clock.now(),
+                       time.monotonic() - wall0)
+    _write_outputs(out, summary, record, oracle)
+    return summary
+
+
+def _require_sim(cfg: Config) -> None:
+    # A dry-run (or replay) is simulation by definition: never let a hardware config silently run on the
+    # sim, and never let recorded frames stand in for a live camera on a real robot.
+    if cfg.robot.driver != "sim" or cfg.camera.driver != "sim":
+        raise ConfigError(Path(cfg.file), "robot.driver" if cfg.robot.driver != "sim" else "camera.driver",
+                          "the dry-run needs the sim robot and sim camera; this config selects "
+                          f"robot '{cfg.robot.driver}', camera '{cfg.camera.driver}'")
+
+
+def _gated_run(cfg: Config, stage: StageConfig, clock: SimClock, kin: PandaKinematics, sim: SimRobot, robot,
+               camera, model: TargetModel, path: ArcPath, T0: np.ndarray, frame_period: float, out: Path | None,
+               progress, *, wrap_camera=None, wrap_robot=None, latency_scale: float = 1.0
+               ) -> tuple[RunRecord, EventLog, np.ndarray]:
+    """One gated arc under the supervisor loop -> (record, events, executed viewing angles)."""
     events = EventLog(None if out is None else out / "events.jsonl")
     try:
         events.emit(clock.now(), "config", sha256=cfg.sha256, file=str(cfg.file), stage=stage.name)
@@ -118,31 +139,97 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
         predictor = make_predictor(stage.predictor, stage.variant, stage.n_t, stage.step, hard_limit=stage.hard_limit)
         loop_robot = wrap_robot(robot) if wrap_robot else robot
         loop_camera = wrap_camera(camera) if wrap_camera else camera
-        loop = SupervisorLoop(robot=loop_robot, camera=loop_camera, worker=InlineWorker(Localizer(model, cfg.localization), latency_scale),
+        loop = SupervisorLoop(robot=loop_robot, camera=loop_camera,
+                              worker=InlineWorker(Localizer(model, cfg.localization), latency_scale),
                               predictor=predictor, stage=stage, follower=follower, kin=kin, T_base_cam_model=T0,
                               T_cam_target_model=model.T_cam0_target, clock=clock, events=events,
-                              s_end=stage.hard_limit, frame_period=cfg.camera.frame_period_s,
+                              s_end=stage.hard_limit, frame_period=frame_period,
                               reference_point=model.points_target.astype(float).mean(axis=0))
         record = loop.run()
     finally:
         events.close()
     progress(f"  halted at {math.degrees(record.halt_s):.2f} deg ({record.halt_reason}) after "
              f"{clock.now():.1f} s simulated")
-
     # Measured on what the sim robot executed (its state after every command), not on the plan.
     executed_theta = np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
-    oracle = _oracle(cfg, renderer, model, path, T0, stage.hard_limit, spec.seed,
-                     scene.reference_point_in_target()) if spec.oracle else None
-    summary = _summary(cfg, stage, scene, spec, record, executed_theta, oracle, events, clock.now(),
-                       time.monotonic() - wall0)
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        tmp = out / ".summary.json.tmp"
-        tmp.write_text(json.dumps(summary, indent=2, sort_keys=True))
-        tmp.replace(out / "summary.json")
-        from supervisor.runtime.plots import plot_timeline
+    return record, events, executed_theta
 
-        plot_timeline(record, oracle, summary, out / "timeline.png")
+
+def _write_outputs(out: Path | None, summary: dict[str, Any], record: RunRecord, oracle) -> None:
+    if out is None:
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / ".summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=2, sort_keys=True))
+    tmp.replace(out / "summary.json")
+    from supervisor.runtime.plots import plot_timeline
+
+    plot_timeline(record, oracle, summary, out / "timeline.png")
+
+
+def run_replay(cfg: Config, dataset: str | Path, stage_name: str, out: Path | None, progress=print) -> dict[str, Any]:
+    """Replay a recorded stop-and-go arc through the same supervisor loop.
+
+    The sim robot drives the recorded arc (the dataset's start pose, pivot and azimuth) under the
+    gate; the camera is the recording itself, serving at each position the images taken there
+    (`PoseReplayCamera`). The stage's step and frames per step become the recording's, its
+    sampling stop-and-go (nothing was recorded between positions) and its hard limit at most the
+    recorded sweep. The actual boundary comes from localizing every recorded frame against the
+    recording's ground truth, as `supervisor evaluate` does.
+    """
+    from drivers.camera.replay import PoseReplayCamera
+    from supervisor.dataset.format import Dataset
+    from supervisor.errors import DatasetError
+    from supervisor.localization.offline import localize_dataset, model_from_dataset, per_position
+
+    wall0 = time.monotonic()
+    _require_sim(cfg)
+    ds = Dataset.open(dataset)
+    meta_file = ds.root / "dataset.json"
+    if ds.kind != "arc":
+        raise DatasetError(meta_file, f"replay needs an arc recording (the gated motion is an arc), got {ds.kind!r}")
+    motion = ds.meta.get("motion") or {}
+    try:
+        T0 = np.asarray(motion["T_base_cam0"], float).reshape(4, 4)
+        pivot = np.asarray(motion["pivot_base"], float).reshape(3)
+        azimuth, step = float(motion["azimuth"]), float(motion["step"])
+        positions, per_pos = int(motion["positions"]), int(motion["images_per_position"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(meta_file, f"motion: replay needs T_base_cam0, pivot_base, azimuth, step, positions "
+                                      f"and images_per_position ({exc!r})") from exc
+    stage = cfg.stage(stage_name)
+    stage = dataclasses.replace(stage, sampling="stop_and_go", step=step, frames_per_step=per_pos,
+                                hard_limit=min(stage.hard_limit, step * (positions - 1) + 1e-9))
+    progress(f"replay: {ds.root} ({positions} positions, {per_pos} images each, step "
+             f"{math.degrees(step):.2f} deg), stage {stage.name} (n_t={stage.n_t})")
+    model = model_from_dataset(ds, cfg.localization)
+    progress(f"  target model: {model.n_features} features, frame={model.frame}")
+
+    clock = SimClock()
+    kin = PandaKinematics(T_flange_cam=ds.T_flange_cam, urdf=cfg.robot.urdf)
+    sim = SimRobot(kin, cfg.robot.q_start, dt=cfg.robot.control_period_s, clock=clock)
+    robot = SimRobotDriver(sim)
+    path = ArcPath(T0, pivot, azimuth)
+    sim.move_camera_to(path.pose(0.0))
+    camera = PoseReplayCamera(ds, lambda: sim.state().T_base_flange @ ds.T_flange_cam, clock,
+                              cfg.camera.frame_period_s)
+    record, events, executed_theta = _gated_run(cfg, stage, clock, kin, sim, robot, camera, model, path, T0,
+                                                cfg.camera.frame_period_s, out, progress)
+    oracle = None
+    if ds.has_ground_truth:
+        rows = localize_dataset(ds, model, cfg.localization)
+        pos = per_position(rows, "theta")
+        th = np.array([p["var"] for p in pos])
+        te = np.array([p["t_err_mean"] for p in pos])
+        re = np.array([p["r_err_mean"] for p in pos])
+        oracle = {"theta": th.tolist(), "t_err": te.tolist(), "r_err": re.tolist(),
+                  "n_mean": [p["n_mean"] for p in pos],
+                  "boundary": {name: actual_boundary(th, te, re, tt, tr) for name, (tt, tr) in TOLERANCES.items()}}
+    spec = DryRunSpec(stage=stage.name, azimuth=azimuth, sampling="stop_and_go", seed=int(ds.meta.get("seed", 0)))
+    summary = _summary(cfg, stage, str((ds.meta.get("scene") or {}).get("name", ds.name)), spec, record,
+                       executed_theta, oracle, events, clock.now(), time.monotonic() - wall0)
+    summary["replay"] = str(ds.root)
+    _write_outputs(out, summary, record, oracle)
     return summary
 
 
@@ -176,8 +263,8 @@ def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, 
     return {"theta": thetas, "t_err": t_errs, "r_err": r_errs, "n_mean": n_mean, "boundary": boundaries}
 
 
-def _summary(cfg, stage, scene, spec, record: RunRecord, executed_theta: np.ndarray, oracle, events: EventLog,
-             sim_time: float, wall_time: float) -> dict[str, Any]:
+def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_theta: np.ndarray, oracle,
+             events: EventLog, sim_time: float, wall_time: float) -> dict[str, Any]:
     halt = record.halt_s
     theta_p = [p for _, p, _ in record.theta_p_history if math.isfinite(p)]
     allowed = record.s_allowed_at_brake
@@ -186,7 +273,7 @@ def _summary(cfg, stage, scene, spec, record: RunRecord, executed_theta: np.ndar
     out: dict[str, Any] = {
         "stage": stage.name, "sampling": stage.sampling, "predictor": stage.predictor, "variant": stage.variant,
         "n_t": stage.n_t, "step_deg": math.degrees(stage.step), "margin_deg": math.degrees(stage.margin),
-        "scene": scene.name, "azimuth_deg": math.degrees(spec.azimuth), "seed": spec.seed,
+        "scene": scene_name, "azimuth_deg": math.degrees(spec.azimuth), "seed": spec.seed,
         "config_sha256": cfg.sha256, "halt_reason": record.halt_reason,
         "halt_angle_deg": math.degrees(halt),
         "max_executed_angle_deg": math.degrees(max_exec),

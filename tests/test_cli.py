@@ -352,3 +352,54 @@ def test_evaluate_empty_directory_and_missing_ground_truth(dataset: Path, tmp_pa
     err = capfd.readouterr().err
     assert "ground-truth" in err and "Traceback" not in err
     assert not (tmp_path / "e2" / "results.json").exists()
+
+
+# ---------------------------------------------------------------------------- dry-run --replay
+
+def test_dry_run_replays_a_recording_through_the_loop(dataset: Path, tmp_path: Path) -> None:
+    import json
+
+    out = tmp_path / "replay"
+    assert main(["dry-run", "--replay", str(dataset), "-o", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["replay"] == str(dataset) and s["sampling"] == "stop_and_go" and s["step_deg"] == pytest.approx(5.0)
+    assert s["faults"] == []  # the robot stopped only where images were recorded
+    assert s["n_samples"] % 2 == 0 and s["n_samples"] >= 2  # 2 recorded images per visited position
+    assert s["halt_angle_deg"] <= 15.0 + 1e-6 and s["max_overshoot_deg"] <= 1e-6
+    assert set(s["actual_boundary_deg"]) == {"2mm_3deg", "4mm_10deg"}
+    assert (out / "timeline.png").is_file() and (out / "events.jsonl").is_file()
+
+
+def test_dry_run_replay_of_a_recording_without_its_motion(dataset: Path, tmp_path: Path,
+                                                          capfd: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    ds = copy_dataset(dataset, tmp_path / "ds")
+    meta = json.loads((ds / "dataset.json").read_text())
+    del meta["motion"]["step"]
+    (ds / "dataset.json").write_text(json.dumps(meta))
+    assert main(["dry-run", "--replay", str(ds), "-o", str(tmp_path / "out")]) == 2
+    err = capfd.readouterr().err
+    assert "dataset.json" in err and "motion: replay needs" in err and "Traceback" not in err
+    assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_pose_replay_camera_serves_only_recorded_positions(dataset: Path) -> None:
+    from drivers.camera.replay import PoseReplayCamera
+    from supervisor.clock import SimClock
+    from supervisor.dataset.format import Dataset
+    from supervisor.errors import DriverError
+    from supervisor.geometry import make_T
+
+    ds = Dataset.open(dataset)
+    pos = dict(ds.positions())
+    T = pos[1][0].T_base_cam(ds.T_flange_cam)
+    pose = {"T": T}
+    cam = PoseReplayCamera(ds, lambda: pose["T"], SimClock(), 0.05)
+    frames = [cam.read() for _ in range(3)]
+    assert [f.meta["record"].position for f in frames] == [1, 1, 1]
+    assert [f.meta["record"].index for f in frames] == [pos[1][0].index, pos[1][1].index, pos[1][0].index]
+    assert frames[1].t - frames[0].t == pytest.approx(0.05)
+    pose["T"] = T @ make_T(np.eye(3), [0.005, 0.0, 0.0])  # 5 mm beside the recorded pose
+    with pytest.raises(DriverError, match="no image recorded at the robot's camera pose"):
+        cam.read()

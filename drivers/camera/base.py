@@ -72,6 +72,7 @@ class Camera(abc.ABC):
         self._seq = 0
         self._last_device_seq: int | None = None
         self._closed = False
+        self._next_frame_t: float | None = None  # `_pace`
 
     # -- public API ----------------------------------------------------------
     def read(self, timeout: float = 1.0) -> Frame:
@@ -123,6 +124,14 @@ class Camera(abc.ABC):
         """Release the device (called once)."""
 
     # -- helpers -------------------------------------------------------------
+    def _pace(self, frame_period: float) -> None:
+        """For simulated and replayed sources: wait on the clock until one `frame_period` after the
+        previous frame (the first frame comes at once)."""
+        now = self.clock.now()
+        if self._next_frame_t is not None and self._next_frame_t > now:
+            self.clock.sleep(self._next_frame_t - now)
+        self._next_frame_t = self.clock.now() + frame_period
+
     def _check_image(self, image: Any) -> str:
         dtype, ndim = PIXEL_FORMATS[self.pixel_format]
         if not isinstance(image, np.ndarray):

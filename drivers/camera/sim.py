@@ -26,14 +26,10 @@ class SimCamera(Camera):
         self.pose_source = pose_source
         self.frame_period = frame_period
         self.noise_seed = noise_seed
-        self._next_t: float | None = None
         self._frame_index = 0
 
     def _grab(self, timeout: float) -> RawFrame:
-        now = self.clock.now()
-        if self._next_t is not None and self._next_t > now:
-            self.clock.sleep(self._next_t - now)
-        self._next_t = self.clock.now() + self.frame_period
+        self._pace(self.frame_period)
         T_base_cam = np.array(self.pose_source(), dtype=float)
         rendered = self.renderer.render(T_base_cam, frame_index=self._frame_index, noise_seed=self.noise_seed)
         self._frame_index += 1
