@@ -123,15 +123,20 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_dry_run(args: argparse.Namespace) -> int:
     """The product's main job: one gated arc on the sim robot with the synthetic camera and the real pipeline."""
-    from supervisor.dryrun import DryRunSpec, run_dry_run, run_replay
+    from supervisor.dryrun import DryRunSpec, load_motion, run_dry_run, run_replay
 
     cfg = _config(args)
     out = Path(args.out)
     if args.replay:
         s = run_replay(cfg, args.replay, args.stage or cfg.default_stage, out)
     else:
-        spec = DryRunSpec(stage=args.stage or cfg.default_stage, azimuth=math.radians(args.azimuth),
-                          sampling=args.sampling, scene=args.scene, seed=args.seed, oracle=not args.no_oracle)
+        motion = load_motion(args.motion) if args.motion else {"azimuth": math.radians(90.0), "scene": None,
+                                                                "sweep": None}
+        # explicit flags override the motion file
+        azimuth = math.radians(args.azimuth) if args.azimuth is not None else motion["azimuth"]
+        spec = DryRunSpec(stage=args.stage or cfg.default_stage, azimuth=azimuth, sampling=args.sampling,
+                          scene=args.scene or motion["scene"], seed=args.seed, oracle=not args.no_oracle,
+                          sweep=motion["sweep"])
         s = run_dry_run(cfg, spec, out)
     print(f"stage {s['stage']} ({s['sampling']}), scene {s['scene']}, azimuth {s['azimuth_deg']:g} deg: "
           f"halted at {s['halt_angle_deg']:.2f} deg ({s['halt_reason']})")
@@ -194,7 +199,10 @@ def build_parser() -> argparse.ArgumentParser:
     dr = sub.add_parser("dry-run", help="gated arc on the simulated robot with the real pipeline (main job)")
     dr.add_argument("--stage", default=None, help="stage name (default: the config's default_stage)")
     dr.add_argument("--scene", default=None, help="scene name or YAML path (default: the config's)")
-    dr.add_argument("--azimuth", type=float, default=90.0, help="arc direction [deg]: 0 up, 90 right, 270 left")
+    dr.add_argument("--azimuth", type=float, default=None,
+                    help="arc direction [deg]: 0 up, 90 right, 270 left (default 90, or the motion file's)")
+    dr.add_argument("--motion", default=None, metavar="FILE",
+                    help="motion YAML: kind: arc, azimuth_deg, optional scene and sweep_deg")
     dr.add_argument("--sampling", choices=["stop_and_go", "continuous"], default=None,
                     help="override the stage's sampling mode")
     dr.add_argument("--seed", type=int, default=0)

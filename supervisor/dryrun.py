@@ -55,6 +55,27 @@ class DryRunSpec:
     scene: str | None = None
     seed: int = 0
     oracle: bool = True
+    sweep: float | None = None  # rad; the arc ends here (default: the stage's hard limit)
+
+
+def load_motion(path: str | Path) -> dict[str, Any]:
+    """A dry-run motion file -> {"azimuth": rad, "scene": name or None, "sweep": rad or None}.
+
+        kind: arc            # the gated motion (arc only)
+        azimuth_deg: 90      # direction of the arc: 0 up, 90 right, 270 left
+        scene: phantom       # optional: a name in config/scenes/ or a scene YAML path
+        sweep_deg: 30        # optional: end of the arc (capped by the stage's hard limit)
+    """
+    from supervisor.yamlschema import Node, load_yaml
+
+    node = Node(load_yaml(path), path)
+    node.string("kind", "arc", choices=("arc",))
+    out = {"azimuth": math.radians(node.number("azimuth_deg", min=0.0, max=360.0)),
+           "scene": node.optional_string("scene"),
+           "sweep": math.radians(node.number("sweep_deg", min=0.0, max=180.0, min_exclusive=True))
+           if node.has("sweep_deg") else None}
+    node.done()
+    return out
 
 
 def _build_world(cfg: Config, scene: Scene, seed: int):
@@ -107,9 +128,10 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
     sim.move_camera_to(T0)
 
     path = ArcPath(T0, pivot_base, spec.azimuth)
+    s_end = stage.hard_limit if spec.sweep is None else min(spec.sweep, stage.hard_limit)
     record, events, executed_theta = _gated_run(cfg, stage, clock, kin, sim, robot, camera, model, path, T0,
                                                 cfg.camera.frame_period_s, out, progress, wrap_camera=wrap_camera,
-                                                wrap_robot=wrap_robot, latency_scale=latency_scale)
+                                                wrap_robot=wrap_robot, latency_scale=latency_scale, s_end=s_end)
     oracle = _oracle(cfg, renderer, model, path, T0, stage.hard_limit, spec.seed,
                      scene.reference_point_in_target()) if spec.oracle else None
     summary = _summary(cfg, stage, scene.name, spec, record, executed_theta, oracle, events, clock.now(),
@@ -129,8 +151,8 @@ def _require_sim(cfg: Config) -> None:
 
 def _gated_run(cfg: Config, stage: StageConfig, clock: SimClock, kin: PandaKinematics, sim: SimRobot, robot,
                camera, model: TargetModel, path: ArcPath, T0: np.ndarray, frame_period: float, out: Path | None,
-               progress, *, wrap_camera=None, wrap_robot=None, latency_scale: float = 1.0
-               ) -> tuple[RunRecord, EventLog, np.ndarray]:
+               progress, *, wrap_camera=None, wrap_robot=None, latency_scale: float = 1.0,
+               s_end: float | None = None) -> tuple[RunRecord, EventLog, np.ndarray]:
     """One gated arc under the supervisor loop -> (record, events, executed viewing angles)."""
     events = EventLog(None if out is None else out / "events.jsonl")
     try:
@@ -143,7 +165,7 @@ def _gated_run(cfg: Config, stage: StageConfig, clock: SimClock, kin: PandaKinem
                               worker=InlineWorker(Localizer(model, cfg.localization), latency_scale),
                               predictor=predictor, stage=stage, follower=follower, kin=kin, T_base_cam_model=T0,
                               T_cam_target_model=model.T_cam0_target, clock=clock, events=events,
-                              s_end=stage.hard_limit, frame_period=frame_period,
+                              s_end=stage.hard_limit if s_end is None else s_end, frame_period=frame_period,
                               reference_point=model.points_target.astype(float).mean(axis=0))
         record = loop.run()
     finally:

@@ -403,3 +403,32 @@ def test_pose_replay_camera_serves_only_recorded_positions(dataset: Path) -> Non
     pose["T"] = T @ make_T(np.eye(3), [0.005, 0.0, 0.0])  # 5 mm beside the recorded pose
     with pytest.raises(DriverError, match="no image recorded at the robot's camera pose"):
         cam.read()
+
+
+# ---------------------------------------------------------------------------- dry-run --motion
+
+def test_dry_run_motion_file_sets_azimuth_and_sweep(tmp_path: Path) -> None:
+    import json
+
+    motion = tmp_path / "m.yaml"
+    motion.write_text("kind: arc\nazimuth_deg: 270\nsweep_deg: 4.5\n")
+    out = tmp_path / "out"
+    assert main(["dry-run", "--motion", str(motion), "--no-oracle", "-o", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["azimuth_deg"] == pytest.approx(270.0)
+    assert s["halt_reason"] == "end_of_path" and s["halt_angle_deg"] == pytest.approx(4.5, abs=1e-6)
+
+
+@pytest.mark.parametrize(("text", "words"), [
+    ("kind: spiral\nazimuth_deg: 90\n", "kind"),
+    ("kind: arc\n", "azimuth_deg"),
+    ("kind: arc\nazimuth_deg: 90\nsweep_deg: -3\n", "sweep_deg"),
+    ("kind: arc\nazimuth_deg: 90\nspeed: 3\n", "speed"),
+])
+def test_dry_run_bad_motion_file(tmp_path: Path, capfd: pytest.CaptureFixture[str], text: str, words: str) -> None:
+    motion = tmp_path / "m.yaml"
+    motion.write_text(text)
+    assert main(["dry-run", "--motion", str(motion), "--no-oracle", "-o", str(tmp_path / "out")]) == 2
+    err = capfd.readouterr().err
+    assert str(motion) in err and words in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
