@@ -170,7 +170,7 @@ def format_table(rows: list[FrameArtifact], kind: str) -> str:
 
 
 def plot_artifacts(rows: list[FrameArtifact], kind: str, title: str) -> bytes:
-    """PNG: n_i and pose error against the motion variable."""
+    """PNG: n_i, pose error and the consistency guard's drift against the motion variable."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -193,6 +193,10 @@ def plot_artifacts(rows: list[FrameArtifact], kind: str, title: str) -> bytes:
     ax1.set_title(title)
     ax2.scatter(xs, te, s=8, alpha=0.5, color="tab:blue", label="E_t [mm]")
     ax2.scatter(xs, re, s=8, alpha=0.5, color="tab:orange", label="E_r [deg]")
+    drift = np.array([r.drift_t for r in rows]) * 1000
+    if np.any(np.isfinite(drift)):
+        ax2.scatter(xs, drift, s=8, marker="x", alpha=0.6, color="tab:green",
+                    label="target-pose drift [mm] (no ground truth needed)")
     for y, ls in ((2, ":"), (4, "--")):
         ax2.axhline(y, color="gray", ls=ls, lw=1)
     ax2.set_yscale("log")
