@@ -215,3 +215,44 @@ def test_refine_setting_validated():
         LocalizerSettings(refine="magic")
     with pytest.raises(ValueError, match="refine_scale_px"):
         LocalizerSettings(refine_scale_px=0.0)
+
+
+def test_model_refiner_pulls_noisy_depths_toward_the_truth_and_gates_outliers():
+    from supervisor.geometry import look_at
+    from supervisor.localization.refine import ModelRefiner
+
+    rng = np.random.default_rng(5)
+    intr = Intrinsics(1280, 1024, 1400.0, 1400.0, 640.0, 512.0)
+    pivot = np.array([0.5, 0.0, 0.0])
+    P_true = pivot + rng.uniform([-0.04, -0.04, -0.01], [0.04, 0.04, 0.01], (200, 3))  # target frame = base
+
+    def cam(angle: float, dx: float = 0.0) -> np.ndarray:  # camera on a 0.37 m arc about the pivot
+        c = pivot + 0.37 * np.array([-math.cos(angle), math.sin(angle), 0.0]) + [0.0, 0.0, 0.0]
+        T = look_at(c, pivot, [0.0, 0.0, 1.0])
+        return T @ make_T(np.eye(3), [dx, 0.0, 0.0])
+
+    T0, T1 = cam(0.0), cam(0.0, 0.02)  # the model views, 2 cm apart
+    # two-view depth noise: each point slid along camera 0's ray by ~0.6 mm
+    rays = P_true - T0[:3, 3]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    P_model = P_true + rays * rng.normal(0.0, 0.0006, (200, 1))
+    # target frame = base frame: T_cam0_target = inv(T_base_cam0)
+    model = TargetModel(P_model.astype(np.float32), rng.random((200, 128), np.float32), intr, (1280, 1024), T0,
+                        inv_T(T0), "board", {}, {"T_base_cam1": T1.tolist()})
+    ref = ModelRefiner(model)
+    K = intr.K
+    for a in np.radians([2.25, 4.5, 6.75]):
+        T = cam(a)
+        Y = (P_true - T[:3, 3]) @ T[:3, :3]
+        px = (Y @ K.T)[:, :2] / Y[:, 2:3] + rng.normal(0.0, 0.2, (200, 2))
+        px[:5] += 30.0  # false matches: far outside the kinematic gate
+        ref.add(T, px, np.arange(200))
+    refined, stats = ref.refined()
+    before = np.linalg.norm(P_model - P_true, axis=1)
+    after = np.linalg.norm(refined.points_target - P_true, axis=1)
+    # the 5 points seen only through false matches were gated out: two views, left as they were
+    assert stats["refined"] == 195 and stats["frames"] == 3
+    assert np.array_equal(refined.points_target[:5], model.points_target[:5])
+    assert np.median(after) < 0.5 * np.median(before)
+    assert np.array_equal(refined.descriptors, model.descriptors)
+    assert np.array_equal(refined.T_cam0_target, model.T_cam0_target)

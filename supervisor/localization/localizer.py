@@ -105,6 +105,8 @@ class LocalizationResult:
     timings: dict[str, float] = field(default_factory=dict)  # s: clahe, sift, match, pnp, total
     roi: Roi | None = None  # (x, y, w, h) searched, None = full frame
     problem: str = ""
+    # ratio-test correspondences: (image points Nx2 px, model point indices N), for model refinement
+    matches: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def ok(self) -> bool:
@@ -132,6 +134,13 @@ class Localizer:
         self._K = model.intrinsics.K
         self._dist = model.intrinsics.dist_coeffs
         self._size = model.image_size  # (w, h)
+
+    def set_model(self, model: TargetModel) -> None:
+        """Swap in a model with the same descriptors (e.g. refined 3D points); the matcher stays."""
+        if model.descriptors.shape != self.model.descriptors.shape or \
+                not np.array_equal(model.descriptors, self.model.descriptors):
+            raise ValueError("set_model needs the same descriptors (build a new Localizer for another model)")
+        self.model = model
 
     # -- region of interest ------------------------------------------------------------
     def predicted_roi(self, T_cam_target: np.ndarray) -> Roi | None:
@@ -180,7 +189,8 @@ class Localizer:
         def done(status: Status, T: np.ndarray | None, n_in: int, err: float, why: str = "") -> LocalizationResult:
             timings.setdefault("pnp", 0.0)
             timings["total"] = time.perf_counter() - t0
-            return LocalizationResult(status, T, n_in, n_matches, int(len(kp)), err, timings, roi, why)
+            return LocalizationResult(status, T, n_in, n_matches, int(len(kp)), err, timings, roi, why,
+                                      (kp[qi].astype(np.float64), np.asarray(ti)))
 
         if n_matches < max(4, self.settings.min_inliers):
             return done(Status.NO_MATCHES, None, 0, math.nan, f"{n_matches} matches")

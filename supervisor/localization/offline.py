@@ -26,6 +26,7 @@ from supervisor.localization.artifacts import translation_from_start, viewing_an
 from supervisor.localization.fiducial import BoardSpec
 from supervisor.localization.localizer import Localizer, Status, predict_target_pose
 from supervisor.localization.model import BoxROI, TargetModel, build_model
+from supervisor.localization.refine import ModelRefiner
 from supervisor.localization.settings import LocalizerSettings
 
 CSV_COLUMNS = ["frame", "position", "theta_deg", "x_mm", "n_inliers", "n_matches", "t_err_mm", "r_err_deg",
@@ -83,6 +84,8 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
                      progress: Callable[[int, int], None] | None = None) -> list[FrameArtifact]:
     """Localize every sample frame, using the ROI predicted from robot motion and the last pose."""
     loc = Localizer(model, settings)
+    refine_at = settings.model.refine_positions
+    refiner = ModelRefiner(model) if refine_at > 0 else None
     out: list[FrameArtifact] = []
     T_base_target_model = model.T_base_cam0 @ model.T_cam0_target
     centroid = model.points_target.astype(float).mean(axis=0)
@@ -96,7 +99,12 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
             hint = predict_target_pose(T_base_cam, prev[0], prev[1])
         else:
             hint = predict_target_pose(T_base_cam, model.T_base_cam0, model.T_cam0_target)
+        if refiner is not None and rec.position >= refine_at:
+            loc.set_model(refiner.refined()[0])  # the warm-up positions are done: refine once
+            refiner = None
         res = loc.localize(ds.load_image(rec), hint)
+        if refiner is not None and res.matches is not None:
+            refiner.add(T_base_cam, *res.matches)
         t_err = r_err = drift_t = drift_r = float("nan")
         if res.status is Status.OK:
             prev = (T_base_cam, res.T_cam_target)

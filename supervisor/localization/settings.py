@@ -34,6 +34,10 @@ class ModelSettings:
     # at 0.35 m is ~1.3 mm of depth noise per point; patch refinement cuts it several-fold.
     subpixel_refine: bool = True
     refine_min_score: float = 0.8  # NCC peak below this -> the match is dropped
+    # Beyond the paper: after this many sampling positions (the warm-up), re-triangulate the model
+    # points from every frame so far, seen from the robot's kinematic camera poses (see
+    # localization/refine.py). 0 = off (the paper's two-view model throughout).
+    refine_positions: int = 0
 
     @classmethod
     def from_node(cls, node: Node) -> ModelSettings:
@@ -49,6 +53,7 @@ class ModelSettings:
             min_points=node.integer("min_points", d.min_points, min=4, max=1_000_000),
             subpixel_refine=node.boolean("subpixel_refine", d.subpixel_refine),
             refine_min_score=node.number("refine_min_score", d.refine_min_score, min=-1.0, max=1.0),
+            refine_positions=node.integer("refine_positions", d.refine_positions, min=0, max=10_000),
         )
         if out.max_depth <= out.min_depth:
             raise node.error("max_depth_mm", f"must be > min_depth_mm ({out.min_depth * 1000:g}), "
