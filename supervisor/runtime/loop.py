@@ -41,6 +41,7 @@ from supervisor.errors import CameraTimeout, SupervisorError
 from supervisor.geometry import pose_error
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.localizer import predict_target_pose
+from supervisor.localization.refine import ModelRefiner
 from supervisor.motion.braking import PathState
 from supervisor.motion.gate import Gate
 from supervisor.motion.plan import MotionRejected, PathFollower
@@ -128,6 +129,12 @@ class SupervisorLoop:
         self.robot = robot
         self.camera = camera
         self.worker = worker
+        # Model refinement from the robot's motion (localization.model.refine_positions; 0 = off):
+        # observations from the first steps, the model re-triangulated once they are done.
+        loc = getattr(worker, "localizer", None)
+        refine_steps = loc.settings.model.refine_positions if loc is not None else 0
+        self._refiner = ModelRefiner(loc.model) if refine_steps > 0 else None
+        self._refine_steps = refine_steps
         self.predictor = predictor
         self.stage = stage
         self.follower = follower
@@ -259,6 +266,8 @@ class SupervisorLoop:
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
             self._awaiting[job.step] -= 1
+            if self._refiner is not None and res.matches is not None and job.step < self._refine_steps:
+                self._refiner.add(job.T_base_cam, *res.matches)
             self.events.emit(now, "localization", step=job.step, frame_t=job.t, theta_deg=math.degrees(theta),
                              n_inliers=res.n_inliers, status=res.status.name,
                              latency_ms=(jr.ready_t - job.t) * 1000)
@@ -282,6 +291,11 @@ class SupervisorLoop:
                                  "boundary": None if pred is None else pred.boundary})
         self._check_consistency(now, step, samples)
         self._set_prediction(now, pred)
+        if self._refiner is not None and step >= self._refine_steps - 1:
+            model, stats = self._refiner.refined()
+            self.worker.localizer.set_model(model)
+            self._refiner = None
+            self.events.emit(now, "model_refined", step=step, **stats)
 
     def _check_consistency(self, now: float, step: int, samples: list[Sample]) -> None:
         """The consistency guard: trip (latched) when the step's mean target-pose drift exceeds the limit."""
