@@ -7,7 +7,7 @@ at once would end) and envelope usage; then the totals
 against the paper's live trials (74.7% envelope usage, static 60.4%).
 
     .venv/bin/python benchmarks/dryrun_trials.py [-o out/trials] [--stage explore] [--jobs 2]
-        [--scenes phantom,box,...] [--azimuths 0,90,270]
+        [--scenes phantom,box,...] [--azimuths 0,90,270] [--config FILE]
 """
 
 from __future__ import annotations
@@ -26,15 +26,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from sim.scene import list_scenes  # noqa: E402
 
 
-def _trial(args: tuple[str, float, str, str, str]) -> dict:
+def _trial(args: tuple[str, float, str, str, str, str | None]) -> dict:
     import cv2
 
     cv2.setNumThreads(1)
     from supervisor.config import load_config
     from supervisor.dryrun import DryRunSpec, run_dry_run
 
-    scene, az, sampling, stage, out = args
-    cfg = load_config(None)
+    scene, az, sampling, stage, out, config = args
+    cfg = load_config(config)
     spec = DryRunSpec(stage=stage, azimuth=math.radians(az), sampling=sampling, scene=scene)
     return run_dry_run(cfg, spec, Path(out), progress=lambda m: None)
 
@@ -43,13 +43,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-o", "--out", default="out/trials")
     ap.add_argument("--stage", default="explore")
+    ap.add_argument("--config", default=None, help="configuration YAML (default: the embedded one)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--scenes", default=",".join(list_scenes()))
     ap.add_argument("--azimuths", default="0,90,270")
     ap.add_argument("--modes", default="stop_and_go,continuous")
     a = ap.parse_args()
     out = Path(a.out)
-    trials = [(sc, float(az), mode, a.stage, str(out / f"{sc}_az{int(float(az)):03d}_{mode}"))
+    trials = [(sc, float(az), mode, a.stage, str(out / f"{sc}_az{int(float(az)):03d}_{mode}"), a.config)
               for sc in a.scenes.split(",") for az in a.azimuths.split(",") for mode in a.modes.split(",")]
     print(f"{len(trials)} trials, stage {a.stage}", file=sys.stderr)
     rows = []

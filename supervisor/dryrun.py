@@ -129,10 +129,11 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
 
     path = ArcPath(T0, pivot_base, spec.azimuth)
     s_end = stage.hard_limit if spec.sweep is None else min(spec.sweep, stage.hard_limit)
-    record, events, executed_theta = _gated_run(cfg, stage, clock, kin, sim, robot, camera, model, path, T0,
-                                                cfg.camera.frame_period_s, out, progress, wrap_camera=wrap_camera,
-                                                wrap_robot=wrap_robot, latency_scale=latency_scale, s_end=s_end)
-    oracle = _oracle(cfg, renderer, model, path, T0, stage.hard_limit, spec.seed,
+    record, events, executed_theta, used_model = _gated_run(
+        cfg, stage, clock, kin, sim, robot, camera, model, path, T0, cfg.camera.frame_period_s, out, progress,
+        wrap_camera=wrap_camera, wrap_robot=wrap_robot, latency_scale=latency_scale, s_end=s_end)
+    # The oracle localizes with the model the loop ended with (refined from the robot's motion if enabled).
+    oracle = _oracle(cfg, renderer, used_model, path, T0, stage.hard_limit, spec.seed,
                      scene.reference_point_in_target()) if spec.oracle else None
     summary = _summary(cfg, stage, scene.name, spec, record, executed_theta, oracle, events, clock.now(),
                        time.monotonic() - wall0)
@@ -152,8 +153,9 @@ def _require_sim(cfg: Config) -> None:
 def _gated_run(cfg: Config, stage: StageConfig, clock: SimClock, kin: PandaKinematics, sim: SimRobot, robot,
                camera, model: TargetModel, path: ArcPath, T0: np.ndarray, frame_period: float, out: Path | None,
                progress, *, wrap_camera=None, wrap_robot=None, latency_scale: float = 1.0,
-               s_end: float | None = None) -> tuple[RunRecord, EventLog, np.ndarray]:
-    """One gated arc under the supervisor loop -> (record, events, executed viewing angles)."""
+               s_end: float | None = None) -> tuple[RunRecord, EventLog, np.ndarray, TargetModel]:
+    """One gated arc under the supervisor loop -> (record, events, executed viewing angles, the model
+    the localizer held at the end)."""
     events = EventLog(None if out is None else out / "events.jsonl")
     try:
         events.emit(clock.now(), "config", sha256=cfg.sha256, file=str(cfg.file), stage=stage.name)
@@ -174,7 +176,7 @@ def _gated_run(cfg: Config, stage: StageConfig, clock: SimClock, kin: PandaKinem
              f"{clock.now():.1f} s simulated")
     # Measured on what the sim robot executed (its state after every command), not on the plan.
     executed_theta = np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
-    return record, events, executed_theta
+    return record, events, executed_theta, loop.worker.localizer.model
 
 
 def _write_outputs(out: Path | None, summary: dict[str, Any], record: RunRecord, oracle) -> None:
@@ -235,8 +237,9 @@ def run_replay(cfg: Config, dataset: str | Path, stage_name: str, out: Path | No
     sim.move_camera_to(path.pose(0.0))
     camera = PoseReplayCamera(ds, lambda: sim.state().T_base_flange @ ds.T_flange_cam, clock,
                               cfg.camera.frame_period_s)
-    record, events, executed_theta = _gated_run(cfg, stage, clock, kin, sim, robot, camera, model, path, T0,
-                                                cfg.camera.frame_period_s, out, progress)
+    # The actual boundary below localizes the recording itself (refining the model the same way).
+    record, events, executed_theta, _ = _gated_run(cfg, stage, clock, kin, sim, robot, camera, model, path, T0,
+                                                   cfg.camera.frame_period_s, out, progress)
     oracle = None
     if ds.has_ground_truth:
         rows = localize_dataset(ds, model, cfg.localization)
