@@ -130,8 +130,8 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
     path = ArcPath(T0, pivot_base, spec.azimuth)
     s_end = stage.hard_limit if spec.sweep is None else min(spec.sweep, stage.hard_limit)
     record, events, executed_theta, used_model = _gated_run(
-        cfg, stage, clock, kin, sim, robot, camera, model, path, T0, cfg.camera.frame_period_s, out, progress,
-        wrap_camera=wrap_camera, wrap_robot=wrap_robot, latency_scale=latency_scale, s_end=s_end)
+        cfg, stage, clock, kin, sim, robot, camera, model, path, T0, out, progress, wrap_camera=wrap_camera,
+        wrap_robot=wrap_robot, latency_scale=latency_scale, s_end=s_end)
     # The oracle localizes with the model the loop ended with (refined from the robot's motion if enabled).
     oracle = _oracle(cfg, renderer, used_model, path, T0, stage.hard_limit, spec.seed,
                      scene.reference_point_in_target()) if spec.oracle else None
@@ -151,9 +151,8 @@ def _require_sim(cfg: Config) -> None:
 
 
 def _gated_run(cfg: Config, stage: StageConfig, clock: SimClock, kin: PandaKinematics, sim: SimRobot, robot,
-               camera, model: TargetModel, path: ArcPath, T0: np.ndarray, frame_period: float, out: Path | None,
-               progress, *, wrap_camera=None, wrap_robot=None, latency_scale: float = 1.0,
-               s_end: float | None = None) -> tuple[RunRecord, EventLog, np.ndarray, TargetModel]:
+               camera, model: TargetModel, path: ArcPath, T0: np.ndarray, out: Path | None, progress, *,
+               wrap_camera=None, wrap_robot=None, latency_scale: float = 1.0, s_end: float | None = None) -> tuple[RunRecord, EventLog, np.ndarray, TargetModel]:
     """One gated arc under the supervisor loop -> (record, events, executed viewing angles, the model
     the localizer held at the end)."""
     events = EventLog(None if out is None else out / "events.jsonl")
@@ -167,8 +166,9 @@ def _gated_run(cfg: Config, stage: StageConfig, clock: SimClock, kin: PandaKinem
                               worker=InlineWorker(Localizer(model, cfg.localization), latency_scale),
                               predictor=predictor, stage=stage, follower=follower, kin=kin, T_base_cam_model=T0,
                               T_cam_target_model=model.T_cam0_target, clock=clock, events=events,
-                              s_end=stage.hard_limit if s_end is None else s_end, frame_period=frame_period,
-                              reference_point=model.points_target.astype(float).mean(axis=0))
+                              s_end=stage.hard_limit if s_end is None else s_end,
+                              frame_period=cfg.camera.frame_period_s,
+                              reference_point=model.centroid)
         record = loop.run()
     finally:
         events.close()
@@ -239,7 +239,7 @@ def run_replay(cfg: Config, dataset: str | Path, stage_name: str, out: Path | No
                               cfg.camera.frame_period_s)
     # The actual boundary below localizes the recording itself (refining the model the same way).
     record, events, executed_theta, _ = _gated_run(cfg, stage, clock, kin, sim, robot, camera, model, path, T0,
-                                                   cfg.camera.frame_period_s, out, progress)
+                                                   out, progress)
     oracle = None
     if ds.has_ground_truth:
         rows = localize_dataset(ds, model, cfg.localization)

@@ -185,17 +185,17 @@ class Localizer:
         t2 = time.perf_counter()
         timings["match"] = t2 - t1
         n_matches = int(len(qi))
+        img = kp[qi].astype(np.float64)  # matched image points (PnP input; also returned for model refinement)
 
         def done(status: Status, T: np.ndarray | None, n_in: int, err: float, why: str = "") -> LocalizationResult:
             timings.setdefault("pnp", 0.0)
             timings["total"] = time.perf_counter() - t0
             return LocalizationResult(status, T, n_in, n_matches, int(len(kp)), err, timings, roi, why,
-                                      (kp[qi].astype(np.float64), np.asarray(ti)))
+                                      (img, np.asarray(ti)))
 
         if n_matches < max(4, self.settings.min_inliers):
             return done(Status.NO_MATCHES, None, 0, math.nan, f"{n_matches} matches")
         obj = self.model.points_target[ti].astype(np.float64)
-        img = kp[qi].astype(np.float64)
         s = self.settings
         try:
             ok, rvec, tvec, inliers = cv2.solvePnPRansac(

@@ -134,6 +134,12 @@ class TargetModel:
         """Where the target frame is in the robot base frame (from the model-generation pose)."""
         return self.T_base_cam0 @ self.T_cam0_target
 
+    @property
+    def centroid(self) -> np.ndarray:
+        """(3,) mean of the model points in the target frame, m: where the consistency guard measures
+        the target's translation drift."""
+        return self.points_target.astype(np.float64).mean(axis=0)
+
     def metadata(self) -> dict[str, Any]:
         return {"format": FORMAT, "format_version": FORMAT_VERSION, "frame": self.frame,
                 "image_size": list(self.image_size), "intrinsics": self.intrinsics.to_dict(),

@@ -87,8 +87,7 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
     refine_at = settings.model.refine_positions
     refiner = ModelRefiner(model) if refine_at > 0 else None
     out: list[FrameArtifact] = []
-    T_base_target_model = model.T_base_cam0 @ model.T_cam0_target
-    centroid = model.points_target.astype(float).mean(axis=0)
+    T_base_target_model, centroid = model.T_base_target, model.centroid
     T_start = ds.frames[0].T_base_cam(ds.T_flange_cam)
     prev: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target) of the last success
     for k, rec in enumerate(ds.frames):

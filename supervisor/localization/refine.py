@@ -30,7 +30,7 @@ class ModelRefiner:
         self.model = model
         self.gate_px, self.scale_px, self.min_views, self.iterations = gate_px, scale_px, min_views, iterations
         self._K = model.intrinsics.K
-        self._T_base_target = model.T_base_cam0 @ model.T_cam0_target
+        self._T_base_target = model.T_base_target
         self._obs: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(model.n_features)]
         P = model.points_target.astype(np.float64)
         T1 = model.created.get("T_base_cam1") if isinstance(model.created, dict) else None
