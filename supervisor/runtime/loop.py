@@ -177,7 +177,11 @@ class SupervisorLoop:
     def _set_prediction(self, t: float, pred) -> None:
         """Turn a prediction (or its absence) into the angle the gate must not pass."""
         s_now = self.follower.state.s
-        if pred is not None and pred.valid:
+        stop_here = self._stop_point()
+        warm = self._warmup_allowance()
+        in_warmup = s_now < warm - 1e-12
+        valid = pred is not None and pred.valid
+        if valid:
             self._valid_prediction = True
             if pred.boundary >= self.stage.hard_limit - 1e-12:
                 allowed = self.stage.hard_limit  # no failure predicted inside the range: the margin has no object
@@ -189,37 +193,39 @@ class SupervisorLoop:
                 # up to theta_e permits travel to theta_e + theta_b, no further, until the next update.
                 # (Stop-and-go applies the rule step by step in _tick_stop_and_go.)
                 allowed = min(allowed, self._evidence + self.stage.step)
-            warm = self._warmup_allowance()
-            if s_now < warm - 1e-12:
+            if in_warmup:
                 # Warm-up: a model from a few positions is too uncertain to stop on (a cautious
                 # variant would stop at once); the configured warm-up allowance is granted regardless.
                 allowed = max(allowed, warm)
                 allow_next = allow_next or s_now + self.stage.step <= warm + 1e-12
-            if self._guard_stop is not None:
-                allowed, allow_next = min(allowed, self._guard_stop), False
-            self._theta_allowed = allowed
-            self._allow_next = allow_next
-            self.record.theta_p_history.append((t, pred.boundary, allowed))
-            self._record_allowance(t)
         else:
             # No valid model: within the warm-up allowance keep it; beyond it, a controlled stop now
             # (no boundary is known, so the allowance is where braking from here ends).
-            warm = self._warmup_allowance()
-            stop_here = self.follower.braking.furthest(self.follower.state)[0]
-            self._theta_allowed = max(warm, stop_here) if s_now < warm - 1e-12 else stop_here
-            if self._guard_stop is not None:
-                self._theta_allowed = min(self._theta_allowed, self._guard_stop)
-            self._allow_next = s_now + self.stage.step <= self._theta_allowed + 1e-12
-            self.record.theta_p_history.append((t, math.nan, self._theta_allowed))
-            self._record_allowance(t)
-        self.events.emit(t, "prediction", valid=bool(pred is not None and pred.valid),
-                         theta_p_deg=math.degrees(pred.boundary) if pred is not None and pred.valid else None,
-                         theta_allowed_deg=math.degrees(self._theta_allowed),
+            allowed = max(warm, stop_here) if in_warmup else stop_here
+        if self._guard_stop is not None:
+            allowed = min(allowed, self._guard_stop)
+        if not valid:
+            allow_next = s_now + self.stage.step <= allowed + 1e-12
+        elif self._guard_stop is not None:
+            allow_next = False
+        self._theta_allowed = allowed
+        self._allow_next = allow_next
+        self.record.theta_p_history.append((t, pred.boundary if valid else math.nan, allowed))
+        self._record_allowance(t, stop_here)
+        self.events.emit(t, "prediction", valid=valid, theta_p_deg=math.degrees(pred.boundary) if valid else None,
+                         theta_allowed_deg=math.degrees(allowed),
                          reason=getattr(pred, "reason", "no prediction"), s_deg=math.degrees(s_now))
 
-    def _record_allowance(self, t: float) -> None:
-        stop_at = self.follower.braking.furthest(self.follower.state)[0]
+    def _stop_point(self) -> float:
+        """Where the path coordinate would come to rest if the robot braked now."""
+        return self.follower.braking.furthest(self.follower.state)[0]
+
+    def _record_allowance(self, t: float, stop_at: float) -> None:
         self.record.allowance_history.append((t, self._theta_allowed, stop_at))
+
+    def _boundary_halt_reason(self) -> str:
+        """Why the robot stays where it is when no further motion is permitted."""
+        return "consistency" if self._guard_stop is not None else "boundary"
 
     # -- frames --------------------------------------------------------------------------
     def _camera_pose_at(self, t: float) -> np.ndarray | None:
@@ -311,7 +317,7 @@ class SupervisorLoop:
         st = self.stage
         tripped = (st.consistency_t > 0 and e_t > st.consistency_t) or (st.consistency_r > 0 and e_r > st.consistency_r)
         if tripped and self._guard_stop is None:
-            self._guard_stop = self.follower.braking.furthest(self.follower.state)[0]
+            self._guard_stop = self._stop_point()
             self.events.emit(now, "consistency_guard", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
                              limit_mm=st.consistency_t * 1000, limit_deg=math.degrees(st.consistency_r),
                              s_deg=math.degrees(self.follower.state.s))
@@ -336,7 +342,7 @@ class SupervisorLoop:
         t_start = self.clock.now()
         self.history.add(st.t, st.q)
         self._last_state_t = st.t
-        self._record_allowance(t_start)
+        self._record_allowance(t_start, self._stop_point())
         sampling = self.stage.sampling
         self.events.emit(t_start, "start", stage=self.stage.name, sampling=sampling,
                          s_end_deg=math.degrees(self.s_end), theta_allowed_deg=math.degrees(self._theta_allowed))
@@ -420,7 +426,7 @@ class SupervisorLoop:
                 self._halt(now, "end_of_path")
             elif not self._allow_next or nxt > self._theta_allowed + 1e-12:
                 # next step not permitted: stay stopped (latched)
-                self._halt(now, "consistency" if self._guard_stop is not None else "boundary")
+                self._halt(now, self._boundary_halt_reason())
             else:
                 self._step += 1
                 self._target_s = nxt
@@ -459,5 +465,4 @@ class SupervisorLoop:
         self._target_s = min(self.s_end, self._theta_allowed)
         idle = at_rest and not self._closing and not self.worker.busy
         if idle and s >= self._target_s - 1e-9:
-            reason = "consistency" if self._guard_stop is not None else "boundary"
-            self._halt(now, "end_of_path" if s >= self.s_end - 1e-9 else reason)
+            self._halt(now, "end_of_path" if s >= self.s_end - 1e-9 else self._boundary_halt_reason())
