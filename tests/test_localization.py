@@ -256,3 +256,11 @@ def test_model_refiner_pulls_noisy_depths_toward_the_truth_and_gates_outliers():
     assert np.median(after) < 0.5 * np.median(before)
     assert np.array_equal(refined.descriptors, model.descriptors)
     assert np.array_equal(refined.T_cam0_target, model.T_cam0_target)
+    # refined() leaves the refiner as it was: asked again it answers the same; later frames add to it
+    assert np.array_equal(ref.refined()[0].points_target, refined.points_target)
+    T = cam(np.radians(9.0))
+    Y = (P_true - T[:3, 3]) @ T[:3, :3]
+    ref.add(T, (Y @ K.T)[:, :2] / Y[:, 2:3], np.arange(200))
+    again, stats2 = ref.refined()
+    assert stats2["frames"] == 4 and ref.n_observations == 2 * 200 + 3 * 195 + 200
+    assert np.median(np.linalg.norm(again.points_target - P_true, axis=1)) < np.median(after)

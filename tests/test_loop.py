@@ -173,16 +173,23 @@ def test_black_frames_leave_no_valid_model_and_stop_at_the_warmup_allowance(cfg)
     assert s["halt_angle_deg"] <= 3.0 + 1e-6  # 2 warm-up steps of 1.5 deg
 
 
-def test_model_refinement_in_the_loop_after_the_warmup_steps(cfg, tmp_path):
+@pytest.mark.parametrize("continuous", [False, True])
+def test_model_refinement_in_the_loop_after_the_warmup_steps(cfg, tmp_path, continuous):
     import json
 
-    loc = dataclasses.replace(cfg.localization, model=dataclasses.replace(cfg.localization.model,
-                                                                          refine_positions=2))
+    loc = dataclasses.replace(cfg.localization, model=dataclasses.replace(
+        cfg.localization.model, refine_positions=2, refine_continuous=continuous))
     cfg2 = dataclasses.replace(cfg, localization=loc)
     spec = DryRunSpec(stage="explore", azimuth=math.radians(90.0), oracle=False)
     s = run_dry_run(cfg2, spec, tmp_path, progress=lambda m: None, stage_override=_stage(cfg))
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     refined = [e for e in events if e["kind"] == "model_refined"]
-    assert len(refined) == 1 and refined[0]["step"] == 1  # after steps 0 and 1 (0 and 1.5 deg)
+    assert refined[0]["step"] == 1  # after steps 0 and 1 (0 and 1.5 deg)
     assert refined[0]["refined"] > 100 and refined[0]["frames"] == 4  # 2 frames per step
+    steps = [e["step"] for e in events if e["kind"] == "step"]
+    if continuous:  # again after every later step, from every frame so far
+        assert [e["step"] for e in refined] == list(range(1, max(steps) + 1))
+        assert [e["frames"] for e in refined] == [2 * (k + 1) for k in range(1, max(steps) + 1)]
+    else:
+        assert len(refined) == 1
     assert s["halt_reason"] == "end_of_path" and s["faults"] == []

@@ -86,6 +86,7 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
     loc = Localizer(model, settings)
     refine_at = settings.model.refine_positions
     refiner = ModelRefiner(model) if refine_at > 0 else None
+    refined_for = -1  # the position the model was last refined for
     out: list[FrameArtifact] = []
     T_base_target_model, centroid = model.T_base_target, model.centroid
     T_start = ds.frames[0].T_base_cam(ds.T_flange_cam)
@@ -98,9 +99,12 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
             hint = predict_target_pose(T_base_cam, prev[0], prev[1])
         else:
             hint = predict_target_pose(T_base_cam, model.T_base_cam0, model.T_cam0_target)
-        if refiner is not None and rec.position >= refine_at:
-            loc.set_model(refiner.refined()[0])  # the warm-up positions are done: refine once
-            refiner = None
+        if refiner is not None and rec.position >= refine_at and rec.position != refined_for:
+            # the warm-up positions are done: refine (once, or at every later position)
+            loc.set_model(refiner.refined()[0])
+            refined_for = rec.position
+            if not settings.model.refine_continuous:
+                refiner = None
         res = loc.localize(ds.load_image(rec), hint)
         if refiner is not None and res.matches is not None:
             refiner.add(T_base_cam, *res.matches)

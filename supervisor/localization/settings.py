@@ -38,6 +38,10 @@ class ModelSettings:
     # points from every frame so far, seen from the robot's kinematic camera poses (see
     # localization/refine.py). 0 = off (the paper's two-view model throughout).
     refine_positions: int = 0
+    # After the warm-up, keep collecting and re-triangulate again at every later position (each
+    # refit uses every frame so far, gated by the kinematic pose against the *original* model).
+    # False: refine once after the warm-up and keep that model.
+    refine_continuous: bool = False
 
     @classmethod
     def from_node(cls, node: Node) -> ModelSettings:
@@ -54,6 +58,7 @@ class ModelSettings:
             subpixel_refine=node.boolean("subpixel_refine", d.subpixel_refine),
             refine_min_score=node.number("refine_min_score", d.refine_min_score, min=-1.0, max=1.0),
             refine_positions=node.integer("refine_positions", d.refine_positions, min=0, max=10_000),
+            refine_continuous=node.boolean("refine_continuous", d.refine_continuous),
         )
         if out.max_depth <= out.min_depth:
             raise node.error("max_depth_mm", f"must be > min_depth_mm ({out.min_depth * 1000:g}), "

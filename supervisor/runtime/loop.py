@@ -130,11 +130,13 @@ class SupervisorLoop:
         self.camera = camera
         self.worker = worker
         # Model refinement from the robot's motion (localization.model.refine_positions; 0 = off):
-        # observations from the first steps, the model re-triangulated once they are done.
+        # observations from the first steps, the model re-triangulated once they are done, and with
+        # refine_continuous again after every later step (from every frame so far).
         loc = getattr(worker, "localizer", None)
         refine_steps = loc.settings.model.refine_positions if loc is not None else 0
         self._refiner = ModelRefiner(loc.model) if refine_steps > 0 else None
         self._refine_steps = refine_steps
+        self._refine_continuous = bool(loc is not None and loc.settings.model.refine_continuous)
         self.predictor = predictor
         self.stage = stage
         self.follower = follower
@@ -272,7 +274,8 @@ class SupervisorLoop:
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
             self._awaiting[job.step] -= 1
-            if self._refiner is not None and res.matches is not None and job.step < self._refine_steps:
+            if self._refiner is not None and res.matches is not None and \
+                    (self._refine_continuous or job.step < self._refine_steps):
                 self._refiner.add(job.T_base_cam, *res.matches)
             self.events.emit(now, "localization", step=job.step, frame_t=job.t, theta_deg=math.degrees(theta),
                              n_inliers=res.n_inliers, status=res.status.name,
@@ -300,7 +303,8 @@ class SupervisorLoop:
         if self._refiner is not None and step >= self._refine_steps - 1:
             model, stats = self._refiner.refined()
             self.worker.localizer.set_model(model)
-            self._refiner = None
+            if not self._refine_continuous:
+                self._refiner = None
             self.events.emit(now, "model_refined", step=step, **stats)
 
     def _check_consistency(self, now: float, step: int, samples: list[Sample]) -> None:
