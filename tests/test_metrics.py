@@ -69,3 +69,17 @@ def test_evaluation_guard_stops_next_step_where_the_drift_crosses_half_the_toler
     assert drifting.stops["next_step_logfit"] == plain.stops["next_step_logfit"]  # unguarded: unchanged
     off = evaluate_dataset("drift", "arc", _artifacts(drift), guard_fraction=0.0)
     assert off.guard_stop == {"2mm_3deg": math.inf, "4mm_10deg": math.inf}
+
+
+def test_ceiling_is_the_mean_over_the_earliest_actual_boundary_and_bounds_every_system():
+    from supervisor.evaluation.experiments import DatasetResult, _ceiling
+
+    def result(name: str, a_deg: float) -> DatasetResult:
+        a = math.radians(a_deg)
+        return DatasetResult(name, "arc", math.radians(45.0), {"2mm_3deg": a, "4mm_10deg": a}, {}, {}, [], [])
+
+    res = [result("a", 10.0), result("b", 20.0), result("c", 45.0)]
+    c = _ceiling(res, "arc")["4mm_10deg"]
+    assert c["min_actual"] == pytest.approx(10.0) and c["mean_actual"] == pytest.approx(25.0)
+    assert c["max_improvement_over_static"] == pytest.approx(1.5)  # 25 / 10 - 1
+    assert _ceiling(res, "line") == {}

@@ -205,6 +205,24 @@ def _curves(results: list[DatasetResult], kind: str) -> dict[str, Any]:
     return out
 
 
+def _ceiling(results: list[DatasetResult], kind: str) -> dict[str, Any]:
+    """Per tolerance: what a perfect supervisor (stopping exactly at theta_a) reaches at zero incursion.
+
+    The static envelope's best zero-incursion point is the earliest theta_a of the suite, and
+    no system can exceed the mean theta_a, so mean/min bounds every relative improvement.
+    """
+    res = [r for r in results if r.kind == kind]
+    if not res:
+        return {}
+    unit_scale = math.degrees(1.0) if kind == "arc" else 1000.0
+    out = {}
+    for tol in TOLERANCES:
+        a = np.array([r.actual[tol] for r in res]) * unit_scale
+        out[tol] = {"mean_actual": float(np.mean(a)), "min_actual": float(np.min(a)),
+                    "max_improvement_over_static": float(np.mean(a) / np.min(a) - 1.0) if np.min(a) > 0 else None}
+    return out
+
+
 def run_evaluation(cfg: Config, bench_dir: str | Path, out: str | Path, jobs: int = 2,
                    progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
     bench_dir, out = Path(bench_dir), Path(out)
@@ -231,6 +249,7 @@ def run_evaluation(cfg: Config, bench_dir: str | Path, out: str | Path, jobs: in
                       "n_mean": r.n_mean} for r in results],
         "arc": _curves(results, "arc"),
         "line": _curves(results, "line"),
+        "ceiling": {"arc": _ceiling(results, "arc"), "line": _ceiling(results, "line")},
         "units": {"arc": "deg", "line": "mm"},
     }
     from supervisor.evaluation.report import write_reports
