@@ -129,3 +129,34 @@ def test_missing_file_and_duplicate_key(tmp_path):
     p = _edited(tmp_path, "seed: 101", "seed: 101\nseed: 102")
     with pytest.raises(ConfigError, match="duplicate"):
         load_scene(p)
+
+
+def test_benchmark_suite_scenes_are_shipped_and_at_least_seven_on_three_azimuths():
+    from supervisor.config import load_config
+    from supervisor.dataset.benchmark import SUITE_SCENES, suite_items
+
+    assert set(SUITE_SCENES) <= set(list_scenes()) and len(set(SUITE_SCENES)) >= 7
+    items = suite_items(load_config(None))
+    arcs = [i for i in items if i.kind == "arc"]
+    assert len(arcs) == 3 * len(SUITE_SCENES) and {i.azimuth_deg for i in arcs} == {0.0, 90.0, 270.0}
+    assert len({i.name for i in items}) == len(items)
+    assert sum(i.kind == "line" for i in items) == 4
+
+
+@pytest.mark.parametrize("name", [n for n in list_scenes() if n.endswith("_foam")])
+def test_foam_variant_differs_from_its_scene_only_in_finish(name):
+    import yaml
+
+    base = yaml.safe_load((SCENES_DIR / f"{name.removesuffix('_foam')}.yaml").read_text())
+    foam = yaml.safe_load((SCENES_DIR / f"{name}.yaml").read_text())
+    for key in set(base) - {"description", "materials"}:
+        assert foam[key] == base[key], key
+    for mat, b in base["materials"].items():
+        f = foam["materials"][mat]
+        if mat in ("table", "base"):
+            assert f == b
+            continue
+        assert f["contrast"] == pytest.approx(0.5 * b["contrast"])
+        assert f["bump_mm"] == pytest.approx(2.0 * b["bump_mm"])
+        assert {k: v for k, v in f.items() if k not in ("contrast", "bump_mm")} == \
+            {k: v for k, v in b.items() if k not in ("contrast", "bump_mm")}

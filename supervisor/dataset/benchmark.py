@@ -1,11 +1,23 @@
-"""The benchmark suite: every shipped scene on arcs at three azimuths, plus lines.
+"""The benchmark suite: eight scenes on arcs at three azimuths, plus lines.
 
-Like the paper's data: 45 deg arcs at azimuths 0, 90 and 270 deg (here over all
-frozen scenes in config/scenes/, at least 7) and four straight lines with start
+Like the paper's data: 45 deg arcs at azimuths 0, 90 and 270 deg over the
+`SUITE_SCENES` (frozen scenes in config/scenes/) and four straight lines with start
 offsets 0/5/10/15 deg on the phantom scene. `quick` records 3 images per
 position instead of 10. Datasets are generated in parallel processes; each is
 written atomically, so an interrupted run can be resumed (complete datasets
 are kept when the suite's parameters match).
+
+Suite v2 (the scene list below). The suite must contain failure boundaries: the
+localization issue asks that n_i decay from a few hundred to < 15 within ~25-50 deg
+and that the 4 mm / 10 deg error be exceeded inside the 45 deg arc in at least 80% of
+the arcs, at differing angles. With the model refined from the robot's motion, six of
+the eight original scenes kept 15-100 inliers at 45 deg on at least one azimuth and
+localized within tolerance to the end (full suite v1: 14 of 24 arcs failed). Those six
+were replaced by their `_foam` variants (same geometry, seed and board; printed texture
+at half contrast, relief doubled), one rule applied to all six; phantom and
+phantom_glossy already met the decay and stay. The rule was chosen and checked with
+the localization checks alone (benchmarks/localization_suite.py), not with any
+predictor. Suite v1 scenes stay shipped for dry-runs.
 """
 
 from __future__ import annotations
@@ -19,13 +31,14 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from sim.scene import list_scenes
 from supervisor.config import Config, load_config
 from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
 from supervisor.errors import DatasetError, SupervisorError
 
 SUITE_FILE = "suite.json"
 ARC_AZIMUTHS_DEG = (0.0, 90.0, 270.0)
+SUITE_SCENES = ("box_foam", "box_fine_foam", "bracket_foam", "phantom", "phantom_glossy", "phantom_lowrelief_foam",
+                "plate_foam", "plate_matte_foam")
 LINE_SCENE = "phantom"
 
 
@@ -40,7 +53,7 @@ class SuiteItem:
 
 def suite_items(cfg: Config) -> list[SuiteItem]:
     items = [SuiteItem(f"arc_{scene}_az{int(az):03d}", "arc", scene, azimuth_deg=az)
-             for scene in list_scenes() for az in ARC_AZIMUTHS_DEG]
+             for scene in SUITE_SCENES for az in ARC_AZIMUTHS_DEG]
     items += [SuiteItem(f"line_{LINE_SCENE}_off{round(math.degrees(o)):02d}", "line", LINE_SCENE,
                         start_offset_deg=math.degrees(o)) for o in cfg.dataset.line.start_offsets]
     return items
