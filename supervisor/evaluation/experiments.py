@@ -174,12 +174,17 @@ def _stop(r: DatasetResult, system: str, i: int, tol: str) -> float:
     return r.stops[system][i]
 
 
+def _report_unit(kind: str) -> float:
+    """SI -> report units: degrees for arcs, millimetres for lines."""
+    return math.degrees(1.0) if kind == "arc" else 1000.0
+
+
 def _curves(results: list[DatasetResult], kind: str) -> dict[str, Any]:
     """Per tolerance and system: the SPL-vs-incursion curve and its best zero-incursion point."""
     res = [r for r in results if r.kind == kind]
     if not res:
         return {}
-    unit_scale = math.degrees(1.0) if kind == "arc" else 1000.0
+    unit_scale = _report_unit(kind)
     out: dict[str, Any] = {}
     for tol in TOLERANCES:
         actual = [r.actual[tol] for r in res]
@@ -214,7 +219,7 @@ def _ceiling(results: list[DatasetResult], kind: str) -> dict[str, Any]:
     res = [r for r in results if r.kind == kind]
     if not res:
         return {}
-    unit_scale = math.degrees(1.0) if kind == "arc" else 1000.0
+    unit_scale = _report_unit(kind)
     out = {}
     for tol in TOLERANCES:
         a = np.array([r.actual[tol] for r in res]) * unit_scale
@@ -240,7 +245,7 @@ def run_evaluation(cfg: Config, bench_dir: str | Path, out: str | Path, jobs: in
         for k, r in enumerate(pool.map(_job, args), 1):
             results.append(r)
             progress(f"  [{k}/{len(datasets)}] {r.name}: theta_a(4mm/10deg) = "
-                     f"{r.actual['4mm_10deg'] * (math.degrees(1) if r.kind == 'arc' else 1000):.2f} "
+                     f"{r.actual['4mm_10deg'] * _report_unit(r.kind):.2f} "
                      f"{'deg' if r.kind == 'arc' else 'mm'}  ({time.monotonic() - t0:.0f} s)")
     results.sort(key=lambda r: r.name)
     report = {
