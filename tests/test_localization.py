@@ -264,3 +264,45 @@ def test_model_refiner_pulls_noisy_depths_toward_the_truth_and_gates_outliers():
     again, stats2 = ref.refined()
     assert stats2["frames"] == 4 and ref.n_observations == 2 * 200 + 3 * 195 + 200
     assert np.median(np.linalg.norm(again.points_target - P_true, axis=1)) < np.median(after)
+
+
+def test_guided_matches_keep_nearest_neighbours_that_land_on_their_projection():
+    from supervisor.localization.features import guided_matches
+
+    proj = np.array([[100.0, 100.0], [200.0, 200.0], [300.0, 300.0], [np.nan, np.nan]])
+    kp = np.array([[101.0, 100.5], [200.5, 200.0], [310.0, 300.0], [50.0, 50.0], [199.0, 201.0], [400.0, 400.0]])
+    knn_idx = np.array([[0, 2], [1, 0], [2, 1], [3, 0], [1, 2], [2, 0]])
+    knn_d2 = np.array([
+        [1.0, 1.3],  # ambiguous for the global 0.8 ratio test, but lands on model 0's projection -> kept
+        [4.0, 5.0],  # model 1, on its projection ...
+        [1.0, 9.0],  # model 2, but 10 px from its projection -> dropped
+        [1.0, 9.0],  # model 3 is not in view (NaN projection) -> dropped
+        [1.0, 9.0],  # ... model 1 again, nearer descriptor: wins model 1
+        [1.0, 1.0],  # fails the ratio test outright
+    ])
+    k, m = guided_matches(kp, knn_idx, knn_d2, proj, 3.0, 0.9)
+    assert sorted(zip(k.tolist(), m.tolist())) == [(0, 0), (4, 1)]
+    k, m = guided_matches(np.empty((0, 2)), np.empty((0, 2), np.intp), np.empty((0, 2)), proj, 3.0, 0.9)
+    assert len(k) == len(m) == 0
+
+
+def test_guided_polish_keeps_n_i_and_the_pose_within_tolerance(scene, model):
+    on = Localizer(model, dataclasses.replace(LocalizerSettings(), guided_radius_px=3.0))
+    off = Localizer(model, LocalizerSettings())
+    for deg in (20.0, 40.0):
+        T_world_cam = _view(scene, deg)
+        img = scene.render(inv_T(T_world_cam), INTR, seed=int(deg) + 30)
+        T_true = inv_T(T_world_cam) @ T_TARGET_BOARD
+        a, b = on.localize(img, hint=T_true), off.localize(img, hint=T_true)
+        assert a.status is b.status is Status.OK
+        assert a.n_inliers == b.n_inliers  # the artifact is RANSAC's count either way
+        # by projection, many more correspondences than the global ratio test keeps at oblique views
+        assert b.n_guided == 0 and a.n_guided > b.n_matches
+        assert pose_error(a.T_cam_target, T_true)[0] < 2e-3
+
+
+def test_guided_settings_validated():
+    with pytest.raises(ValueError, match="guided_radius_px"):
+        LocalizerSettings(guided_radius_px=-1.0)
+    with pytest.raises(ValueError, match="guided_ratio"):
+        LocalizerSettings(guided_ratio=0.0)

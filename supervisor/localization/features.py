@@ -129,6 +129,37 @@ def ratio_one_to_one(idx: np.ndarray, dist_sq: np.ndarray, ratio: float) -> tupl
     return q[keep].astype(np.intp), t[keep].astype(np.intp)
 
 
+def guided_matches(points_px: np.ndarray, knn_idx: np.ndarray, knn_dist_sq: np.ndarray, projected_px: np.ndarray,
+                   radius_px: float, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest-neighbour matches verified by projection: (keypoint indices, model indices), one-to-one.
+
+    A keypoint is paired with its nearest model descriptor (`knn_idx[:, 0]`, from `knn2`) when it
+    passes a ratio test at `ratio` (looser than the global one) and lies within `radius_px` of that
+    model point's projection (`projected_px`, rows of NaN never match). The window is the filter: an
+    unrelated nearest neighbour lands inside a few pixels of its own model point only by chance
+    (about radius^2 / area of the view), so even ambiguous descriptors are safe to use, whereas pairing
+    a model point with whichever keypoint is near its projection would follow any pose it is given.
+    A model point claimed by several keypoints keeps the nearest descriptor.
+    """
+    if len(points_px) == 0:
+        return np.empty(0, np.intp), np.empty(0, np.intp)
+    m = knn_idx[:, 0]
+    ok = knn_dist_sq[:, 0] < (ratio * ratio) * knn_dist_sq[:, 1]
+    proj = projected_px[m]
+    with np.errstate(invalid="ignore"):
+        near = np.sum((proj - points_px) ** 2, axis=1) <= radius_px * radius_px  # NaN -> False
+    k = np.flatnonzero(ok & near)
+    if len(k) == 0:
+        return np.empty(0, np.intp), np.empty(0, np.intp)
+    t, d = m[k], knn_dist_sq[k, 0]
+    order = np.lexsort((d, t))
+    t_sorted = t[order]
+    first = np.ones(len(order), bool)
+    first[1:] = t_sorted[1:] != t_sorted[:-1]
+    keep = np.sort(order[first])
+    return k[keep].astype(np.intp), t[keep].astype(np.intp)
+
+
 def mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact ratio-test matches a -> b that are also mutual nearest neighbours (b -> a).
 

@@ -23,7 +23,8 @@ import cv2
 import numpy as np
 
 from supervisor.geometry import inv_T, make_T
-from supervisor.localization.features import DescriptorMatcher, FeatureExtractor, Roi
+from supervisor.localization.features import (DescriptorMatcher, FeatureExtractor, Roi, guided_matches,
+                                              ratio_one_to_one)
 from supervisor.localization.model import TargetModel
 from supervisor.localization.settings import LocalizerSettings
 
@@ -107,6 +108,7 @@ class LocalizationResult:
     problem: str = ""
     # ratio-test correspondences: (image points Nx2 px, model point indices N), for model refinement
     matches: tuple[np.ndarray, np.ndarray] | None = None
+    n_guided: int = 0  # matches found by projection for the guided polish (0 when off or too few)
 
     @property
     def ok(self) -> bool:
@@ -174,6 +176,7 @@ class Localizer:
     def localize(self, image: np.ndarray, hint: np.ndarray | None = None) -> LocalizationResult:
         """Localize the target in `image`; `hint` is a predicted `T_cam_target` used for the ROI."""
         t0 = time.perf_counter()
+        s = self.settings
         gray, problem = self._check_image(image)
         if gray is None:
             return LocalizationResult(Status.BAD_IMAGE, None, 0, 0, 0, math.nan, {"total": 0.0}, None, problem)
@@ -181,22 +184,23 @@ class Localizer:
         kp, desc = self.features.extract(gray, roi)
         timings = dict(self.features.last_timings)
         t1 = time.perf_counter()
-        qi, ti = self.matcher.match(desc)
+        knn = self.matcher.knn2(desc) if (self.matcher.n_train >= 2 and len(desc)) else None
+        qi, ti = ratio_one_to_one(*knn, self.matcher.ratio) if knn is not None else (np.empty(0, np.intp), np.empty(0, np.intp))
         t2 = time.perf_counter()
         timings["match"] = t2 - t1
         n_matches = int(len(qi))
         img = kp[qi].astype(np.float64)  # matched image points (PnP input; also returned for model refinement)
 
-        def done(status: Status, T: np.ndarray | None, n_in: int, err: float, why: str = "") -> LocalizationResult:
+        def done(status: Status, T: np.ndarray | None, n_in: int, err: float, why: str = "",
+                 n_guided: int = 0) -> LocalizationResult:
             timings.setdefault("pnp", 0.0)
             timings["total"] = time.perf_counter() - t0
             return LocalizationResult(status, T, n_in, n_matches, int(len(kp)), err, timings, roi, why,
-                                      (img, np.asarray(ti)))
+                                      (img, np.asarray(ti)), n_guided)
 
         if n_matches < max(4, self.settings.min_inliers):
             return done(Status.NO_MATCHES, None, 0, math.nan, f"{n_matches} matches")
         obj = self.model.points_target[ti].astype(np.float64)
-        s = self.settings
         try:
             ok, rvec, tvec, inliers = cv2.solvePnPRansac(
                 obj, img, self._K, self._dist, iterationsCount=s.ransac_iterations,
@@ -217,6 +221,9 @@ class Localizer:
         rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], self._K, self._dist, rvec, tvec)
         if s.refine == "robust":
             rvec, tvec = refine_pose_robust(obj, img, self._K, self._dist, rvec, tvec, s.refine_scale_px)
+        n_guided = 0
+        if s.guided_radius_px > 0.0:
+            rvec, tvec, n_guided = self._guided_polish(kp, knn, rvec, tvec)
         proj, _ = cv2.projectPoints(obj[idx], rvec, tvec, self._K, self._dist)
         err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img[idx]) ** 2, axis=1))))
         timings["pnp"] = time.perf_counter() - t2
@@ -224,7 +231,33 @@ class Localizer:
         depth = obj[idx] @ T[2, :3] + T[2, 3]
         if np.median(depth) <= 0:
             return done(Status.PNP_FAILED, None, n_in, err, "pose puts the target behind the camera")
-        return done(Status.OK, T, n_in, err)
+        return done(Status.OK, T, n_in, err, n_guided=n_guided)
+
+    def _guided_polish(self, kp: np.ndarray, knn: tuple[np.ndarray, np.ndarray], rvec: np.ndarray,
+                       tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """Pose refined again on matches found by projection (beyond the paper).
+
+        At oblique views the global ratio test rejects many correct matches, because the model
+        holds similar-looking descriptors elsewhere. A nearest neighbour that lands within
+        `guided_radius_px` of its model point's projection is correct but for a small chance,
+        so a looser ratio (`guided_ratio`) keeps many more correct correspondences; the Cauchy
+        polish over them mainly tightens depth, the weakest direction of a pose from a small
+        patch of points. n_i stays RANSAC's count. Falls back to the given pose when fewer
+        than `min_inliers` such matches are found.
+        """
+        s = self.settings
+        P = self.model.points_target.astype(np.float64)
+        R = cv2.Rodrigues(rvec)[0]
+        z = P @ R[2] + float(tvec[2, 0])
+        proj, _ = cv2.projectPoints(P, rvec, tvec, self._K, self._dist)
+        proj = proj.reshape(-1, 2)
+        proj[z <= 1e-3] = np.nan
+        ki, mi = guided_matches(kp, *knn, proj, s.guided_radius_px, s.guided_ratio)
+        if len(ki) < s.min_inliers:
+            return rvec, tvec, 0
+        rvec, tvec = refine_pose_robust(P[mi], kp[ki].astype(np.float64), self._K, self._dist, rvec, tvec,
+                                        s.refine_scale_px)
+        return rvec, tvec, int(len(ki))
 
     def _check_image(self, image: object) -> tuple[np.ndarray | None, str]:
         if not isinstance(image, np.ndarray):

@@ -92,6 +92,11 @@ class LocalizerSettings:
     # and drops good ones just outside); "inliers": OpenCV's LM on RANSAC's inliers only.
     refine: str = "robust"
     refine_scale_px: float = 0.7  # Cauchy scale: residuals well above it get little weight
+    # Guided matching (beyond the paper): after the polish, match each model point to the keypoints
+    # within this radius of its projection (descriptor ratio test among those candidates) and polish
+    # again on those matches. 0 = off. n_i stays RANSAC's count.
+    guided_radius_px: float = 0.0
+    guided_ratio: float = 0.9
     roi: str = "predicted"  # predicted | off
     roi_margin_px: int = 48
     threads: int = 0  # cv2.setNumThreads at Localizer construction; 0 = leave OpenCV's setting
@@ -113,6 +118,10 @@ class LocalizerSettings:
             raise ValueError(f"refine must be one of {REFINE_MODES}, got {self.refine!r}")
         if not self.refine_scale_px > 0.0:
             raise ValueError(f"refine_scale_px must be > 0, got {self.refine_scale_px}")
+        if not (math.isfinite(self.guided_radius_px) and self.guided_radius_px >= 0.0):
+            raise ValueError(f"guided_radius_px must be >= 0, got {self.guided_radius_px}")
+        if not 0.0 < self.guided_ratio <= 1.0:
+            raise ValueError(f"guided_ratio must be in (0, 1], got {self.guided_ratio}")
 
     @classmethod
     def from_node(cls, node: Node) -> LocalizerSettings:
@@ -141,6 +150,8 @@ class LocalizerSettings:
             refine=node.string("refine", d.refine, choices=REFINE_MODES),
             refine_scale_px=node.number("refine_scale_px", d.refine_scale_px, min=0.0, max=100.0,
                                         min_exclusive=True),
+            guided_radius_px=node.number("guided_radius_px", d.guided_radius_px, min=0.0, max=100.0),
+            guided_ratio=node.number("guided_ratio", d.guided_ratio, min=0.0, max=1.0, min_exclusive=True),
             roi=node.string("roi", d.roi, choices=ROI_MODES),
             roi_margin_px=node.integer("roi_margin_px", d.roi_margin_px, min=0, max=10_000),
             threads=node.integer("threads", d.threads, min=0, max=256),
