@@ -156,9 +156,8 @@ class Renderer:
         ppt = intr.fx * face.texel / float(np.mean(P[:, 2]))
         level = int(min(assets.n_levels - 1, max(0, math.floor(math.log2(1.0 / ppt) + 0.25))))
         shaded = self._shade(assets, level, c_face)
-        th, tw = shaded.shape
-        sx, sy = face.size[0] / tw, face.size[1] / th
-        S = np.array([[sx, 0.0, sx / 2], [0.0, sy, sy / 2], [0.0, 0.0, 1.0]])
+        f, (s0x, s0y) = assets.mip.texel_geometry(level)
+        S = np.array([[f * s0x, 0.0, 0.5 * s0x], [0.0, f * s0y, 0.5 * s0y], [0.0, 0.0, 1.0]])  # texel -> face m
         Hm = self._K @ np.column_stack([R[:, 0], R[:, 1], t]) @ S
         Hm = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ Hm
         warped = cv2.warpPerspective(shaded, Hm, (bw, bh), flags=cv2.INTER_LINEAR,
@@ -190,9 +189,10 @@ class Renderer:
         A = assets.mip.albedo(level)
         N = assets.mip.normals(level)
         th, tw = A.shape
-        sx, sy = face.size[0] / tw, face.size[1] / th
-        dx = (c_face[0] - (np.arange(tw, dtype=np.float32) + 0.5) * sx).astype(np.float32)[None, :]
-        dy = (c_face[1] - (np.arange(th, dtype=np.float32) + 0.5) * sy).astype(np.float32)[:, None]
+        f, (s0x, s0y) = assets.mip.texel_geometry(level)
+        fk = np.float32(f)
+        dx = (c_face[0] - (np.arange(tw, dtype=np.float32) * fk + 0.5) * s0x).astype(np.float32)[None, :]
+        dy = (c_face[1] - (np.arange(th, dtype=np.float32) * fk + 0.5) * s0y).astype(np.float32)[:, None]
         dz = np.float32(c_face[2])
         inv2 = 1.0 / (dx * dx + dy * dy + dz * dz)  # 1 / distance^2 to the light (= the camera)
         inv = np.sqrt(inv2)

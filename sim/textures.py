@@ -155,6 +155,17 @@ class MipChain:
         self._grow(level)
         return self._albedo[level]
 
+    def texel_geometry(self, level: int) -> tuple[float, tuple[float, float]]:
+        """(f, (s0x, s0y)): texel (i, j) of `level` is centred at ((f i + 1/2) s0x, (f j + 1/2) s0y) metres
+        on the face, with f = 2^level and s0 the level-0 texel pitch.
+
+        `cv2.pyrDown` centres texel i of level k on texel 2^k i of level 0, i.e. at (2^k i + 1/2)
+        level-0 texels, not at 2^k (i + 1/2); and an odd size rounds up. So pitch and origin come
+        from level 0 for every level.
+        """
+        h0, w0 = self._albedo[0].shape[:2]
+        return float(2 ** level), (self.size_m[0] / w0, self.size_m[1] / h0)
+
     def normals(self, level: int) -> np.ndarray | None:
         """(H, W, 3) outward normals at `level`, or None for a flat surface."""
         if self._height is None:
@@ -162,5 +173,6 @@ class MipChain:
         if level not in self._normals:
             self._grow(level)
             hgt = self._height[level]
-            self._normals[level] = normal_map(hgt, self.size_m[0] / hgt.shape[1], self.size_m[1] / hgt.shape[0])
+            f, (s0x, s0y) = self.texel_geometry(level)
+            self._normals[level] = normal_map(hgt, f * s0x, f * s0y)
         return self._normals[level]

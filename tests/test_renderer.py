@@ -216,3 +216,43 @@ def test_sift_matches_fall_with_viewing_angle(phantom):
     n30 = good_matches(img0, crop(T30, r.render(T30, 2, 1).image))
     assert n5 > 200
     assert n30 < 0.5 * n5, (n5, n30)
+
+
+_MIP_SCENE = """
+seed: 4
+placement: {translation_mm: [500, 0, 0]}
+pivot_mm: [0, 0, 0]
+view: {radius_mm: 350, elevation_deg: 90, heading_deg: 180}
+lighting: {ambient: 1.0, diffuse: 0.0}
+sensor: {noise_dn: 0, blur_px: 0, drift: 0, offset_dn: 0}
+board: {squares_x: 4, squares_y: 3, square_mm: 15, marker_mm: 11, pose: {translation_mm: [-400, 400, 0.3]}}
+ground: {size_mm: [100, 100], material: flat}
+materials:
+  flat: {albedo: 0.1, contrast: 0.0}
+  printed: {albedo: 0.5, contrast: 0.5}
+objects:
+  plate: {kind: plate, material: printed, center_mm: [0, 0, 10], size_mm: [200, 160], thickness_mm: 2}
+"""
+
+
+def test_coarser_texture_levels_stay_registered_with_level_zero(tmp_path: Path):
+    """Far away the renderer samples a coarser mip level; it must show the texture where level 0 would
+    (pyrDown centres coarse texel i on fine texel 2^k i, not 2^k (i + 1/2))."""
+    p = tmp_path / "mip.yaml"
+    p.write_text(_MIP_SCENE)
+    scene = load_scene(p)
+    mipped, flat = Renderer(scene, INTR), Renderer(scene, INTR)
+    for assets in flat._assets:
+        assets.n_levels = 1  # level 0 only: aliased, but in place
+    centre = _base(scene, [0.0, 0.0, 0.0])
+    shifts = []
+    for dist_m in (1.2, 2.4):  # coarser levels as the plate recedes
+        T = look_at(_base(scene, [0.0, 0.0, dist_m]), centre, np.array([1.0, 0.0, 0.0]))
+        a, _ = mipped.render_radiance(T)
+        b, _ = flat.render_radiance(T)
+        win = (slice(412, 612), slice(540, 740))  # on the plate
+        a = cv2.GaussianBlur(a, (0, 0), 4.0)[win].astype(np.float64)
+        b = cv2.GaussianBlur(b, (0, 0), 4.0)[win].astype(np.float64)
+        (dx, dy), _ = cv2.phaseCorrelate(a, b)
+        shifts.append(math.hypot(dx, dy))
+    assert max(shifts) < 0.05, shifts
