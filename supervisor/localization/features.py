@@ -107,15 +107,25 @@ class DescriptorMatcher:
 
     def match(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(query indices, train indices) of the accepted matches, as int arrays of equal length."""
+        qi, ti, _ = self.match_knn(query)
+        return qi, ti
+
+    def match_knn(self, query: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """`match`, plus the 2-NN results it was drawn from (None when there was nothing to search)."""
         if self.n_train < 2 or len(query) == 0:
-            return np.empty(0, np.intp), np.empty(0, np.intp)
-        idx, dist = self.knn2(query)
-        return ratio_one_to_one(idx, dist, self.ratio)
+            return np.empty(0, np.intp), np.empty(0, np.intp), None
+        knn = self.knn2(query)
+        return (*ratio_one_to_one(*knn, self.ratio), knn)
 
 
-def ratio_one_to_one(idx: np.ndarray, dist_sq: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Lowe ratio test on 2-NN results (squared distances), then keep the closest query per train index."""
+def ratio_one_to_one(idx: np.ndarray, dist_sq: np.ndarray, ratio: float, also: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Lowe ratio test on 2-NN results (squared distances), and `also` (a boolean per query) when given,
+    then keep the closest query per train index."""
     ok = dist_sq[:, 0] < (ratio * ratio) * dist_sq[:, 1]
+    if also is not None:
+        ok &= also
     q = np.flatnonzero(ok)
     if len(q) == 0:
         return np.empty(0, np.intp), np.empty(0, np.intp)
@@ -143,21 +153,9 @@ def guided_matches(points_px: np.ndarray, knn_idx: np.ndarray, knn_dist_sq: np.n
     """
     if len(points_px) == 0:
         return np.empty(0, np.intp), np.empty(0, np.intp)
-    m = knn_idx[:, 0]
-    ok = knn_dist_sq[:, 0] < (ratio * ratio) * knn_dist_sq[:, 1]
-    proj = projected_px[m]
-    with np.errstate(invalid="ignore"):
-        near = np.sum((proj - points_px) ** 2, axis=1) <= radius_px * radius_px  # NaN -> False
-    k = np.flatnonzero(ok & near)
-    if len(k) == 0:
-        return np.empty(0, np.intp), np.empty(0, np.intp)
-    t, d = m[k], knn_dist_sq[k, 0]
-    order = np.lexsort((d, t))
-    t_sorted = t[order]
-    first = np.ones(len(order), bool)
-    first[1:] = t_sorted[1:] != t_sorted[:-1]
-    keep = np.sort(order[first])
-    return k[keep].astype(np.intp), t[keep].astype(np.intp)
+    with np.errstate(invalid="ignore"):  # NaN projections compare False
+        near = np.sum((projected_px[knn_idx[:, 0]] - points_px) ** 2, axis=1) <= radius_px * radius_px
+    return ratio_one_to_one(knn_idx, knn_dist_sq, ratio, near)
 
 
 def mutual_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:

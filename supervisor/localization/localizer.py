@@ -23,8 +23,7 @@ import cv2
 import numpy as np
 
 from supervisor.geometry import inv_T, make_T
-from supervisor.localization.features import (DescriptorMatcher, FeatureExtractor, Roi, guided_matches,
-                                              ratio_one_to_one)
+from supervisor.localization.features import DescriptorMatcher, FeatureExtractor, Roi, guided_matches
 from supervisor.localization.model import TargetModel
 from supervisor.localization.settings import LocalizerSettings
 
@@ -184,8 +183,7 @@ class Localizer:
         kp, desc = self.features.extract(gray, roi)
         timings = dict(self.features.last_timings)
         t1 = time.perf_counter()
-        knn = self.matcher.knn2(desc) if (self.matcher.n_train >= 2 and len(desc)) else None
-        qi, ti = ratio_one_to_one(*knn, self.matcher.ratio) if knn is not None else (np.empty(0, np.intp), np.empty(0, np.intp))
+        qi, ti, knn = self.matcher.match_knn(desc)  # the 2-NN results also serve the guided polish
         t2 = time.perf_counter()
         timings["match"] = t2 - t1
         n_matches = int(len(qi))
