@@ -21,7 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sim.panda import PandaKinematics  # noqa: E402
+from supervisor.arm.kinematics import PandaKinematics  # noqa: E402
 from supervisor.geometry import make_T, pose_error  # noqa: E402
 from supervisor.motion.paths import ArcPath  # noqa: E402
 

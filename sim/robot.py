@@ -15,29 +15,18 @@ then execute it tick by tick — the "plan before moving" rule.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 
-from sim.panda import N_JOINTS, PandaKinematics
+from supervisor.arm.kinematics import N_JOINTS, PandaKinematics
+from supervisor.arm.state import RobotState
 from supervisor.clock import SimClock
 from supervisor.errors import JointLimitError, KinematicsError, RobotFault
 
 _TOL = 1e-9  # absolute slack on position (rad) and velocity (rad/s) checks
 _REL_V = 1e-9  # relative slack on the velocity limit
 _REL_A = 1e-6  # relative slack on the acceleration limit (finite differences of a sampled plan)
-
-
-@dataclass(frozen=True)
-class RobotState:
-    """What the robot reports every tick."""
-
-    t: float  # s, on the robot's (simulated) clock
-    seq: int  # tick counter
-    q: np.ndarray  # rad
-    dq: np.ndarray  # rad/s
-    T_base_flange: np.ndarray
 
 
 def _first_violation(bad: np.ndarray) -> int:

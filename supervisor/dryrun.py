@@ -22,7 +22,7 @@ import numpy as np
 
 from drivers.camera.sim import SimCamera
 from drivers.robot.sim import SimRobotDriver
-from sim.panda import PandaKinematics
+from supervisor.arm.kinematics import PandaKinematics
 from sim.renderer import Renderer
 from sim.robot import SimRobot
 from sim.scene import Scene, load_scene

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sim.panda import PandaKinematics
+from supervisor.arm.kinematics import PandaKinematics
 from supervisor.errors import DriverError, DriverUnavailable, KinematicsError
 from supervisor.geometry import make_T, pose_error, rot_x, rot_z
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sim.panda import PandaKinematics
+from supervisor.arm.kinematics import PandaKinematics
 from supervisor.geometry import make_T, rot_z
 from supervisor.motion.braking import PathLimits, PathState
 from supervisor.motion.gate import Gate

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from drivers.robot import ROBOTS
-from sim.panda import PandaKinematics
-from sim.robot import RobotState, SimRobot
+from supervisor.arm.kinematics import PandaKinematics
+from sim.robot import SimRobot
+from supervisor.arm.state import RobotState
 from supervisor.clock import SimClock
 from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, KinematicsError, RobotFault
 from supervisor.geometry import make_T, pose_error, rot_x

@@ -12,7 +12,7 @@ import abc
 
 import numpy as np
 
-from sim.robot import RobotState
+from supervisor.arm.state import RobotState
 from supervisor.errors import DriverError
 
 

@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.robot.base import Robot
-from sim.panda import N_JOINTS, PandaKinematics
-from sim.robot import RobotState
+from supervisor.arm.kinematics import N_JOINTS, PandaKinematics
+from supervisor.arm.state import RobotState
 from supervisor.clock import Clock, MonotonicClock
 from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, RobotFault
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.robot.base import Robot
-from sim.robot import RobotState, SimRobot
+from sim.robot import SimRobot
+from supervisor.arm.state import RobotState
 
 
 class SimRobotDriver(Robot):

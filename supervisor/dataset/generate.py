@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sim.panda import PandaKinematics
+from supervisor.arm.kinematics import PandaKinematics
 from sim.renderer import Renderer
 from sim.robot import SimRobot
 from sim.scene import Scene, load_scene

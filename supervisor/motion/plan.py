@@ -1,7 +1,7 @@
 """Plan a path motion before moving, and follow it online one control tick at a time.
 
 The path coordinate `s` (radians along an arc, metres along a line) is the only
-thing Ruckig plans; Pinocchio IK (`sim.panda.PandaKinematics`) maps each sample
+thing Ruckig plans; Pinocchio IK (`supervisor.arm.kinematics.PandaKinematics`) maps each sample
 to joint positions, which are checked against the joint position and velocity
 limits. `plan_path` does this for a whole rest-to-rest motion before the first
 command; `PathFollower` does it tick by tick so the gate can brake at any time.
