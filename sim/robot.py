@@ -1,4 +1,4 @@
-"""A simulated Panda that follows joint-position commands tick by tick, in simulated time.
+"""A simulated Panda that follows joint-position commands tick by tick, in simulated or real time.
 
 Kinematic only: each `step(q_cmd)` moves the joints to `q_cmd` over one control
 period `dt` (the commanded velocity is (q_cmd - q)/dt), after checking the
@@ -17,15 +17,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
+from ruckig import ControlInterface, InputParameter
 
 from supervisor.arm.kinematics import N_JOINTS, PandaKinematics
 from supervisor.arm.state import RobotState
-from supervisor.clock import SimClock
+from supervisor.clock import Clock, SimClock
 from supervisor.errors import JointLimitError, KinematicsError, RobotFault
+from supervisor.motion.joint_move import REL_V, TOL, check_joint_plan, plan_joint_move, sample_ruckig
 
-_TOL = 1e-9  # absolute slack on position (rad) and velocity (rad/s) checks
-_REL_V = 1e-9  # relative slack on the velocity limit
+_TOL = TOL  # absolute slack on position (rad) and velocity (rad/s) checks (shared with joint_move)
+_REL_V = REL_V  # relative slack on the velocity limit
 _REL_A = 1e-6  # relative slack on the acceleration limit (finite differences of a sampled plan)
 
 
@@ -54,7 +55,7 @@ class SimRobot:
     while tests and dataset generation step the sim with hold commands from rest.
     """
 
-    def __init__(self, kin: PandaKinematics, q0: np.ndarray, dt: float = 0.001, clock: SimClock | None = None,
+    def __init__(self, kin: PandaKinematics, q0: np.ndarray, dt: float = 0.001, clock: Clock | None = None,
                  *, check_acceleration: bool = False) -> None:
         q0 = _joints_within_limits(kin, q0, "q0", "start position")
         if not (math.isfinite(dt) and dt > 0):
@@ -72,10 +73,17 @@ class SimRobot:
 
     # -- state -------------------------------------------------------------------------
     def state(self) -> RobotState:
-        """Time, tick counter, joints and flange pose now (arrays are copies)."""
+        """Time, tick counter, joints and flange pose now (arrays are copies).
+
+        On a real clock an arm at rest holds its position by itself and keeps reporting (time now);
+        an arm left moving without commands does not (the time of its last tick: a state gap).
+        """
         if self._T_flange is None:
             self._T_flange = self.kin.fk(self._q, "flange")
-        return RobotState(self._t, self._seq, self._q.copy(), self._dq.copy(), self._T_flange.copy())
+        t = self._t
+        if self.clock is not None and not isinstance(self.clock, SimClock) and not np.any(self._dq):
+            t = max(t, self.clock.now())
+        return RobotState(t, self._seq, self._q.copy(), self._dq.copy(), self._T_flange.copy())
 
     @property
     def q(self) -> np.ndarray:
@@ -127,9 +135,11 @@ class SimRobot:
         self._q = q_cmd
         self._T_flange = None
         self._seq += 1
-        if self.clock is not None:
-            self.clock.advance(self.dt)
+        if isinstance(self.clock, SimClock):
+            self.clock.advance(self.dt)  # simulated time: each tick is one control period
             self._t = self.clock.now()
+        elif self.clock is not None:
+            self._t = self.clock.now()  # the real clock: the tick happens now (the caller paces)
         else:
             self._t = self._seq * self.dt  # no accumulated rounding over long runs
         return self.state()
@@ -143,56 +153,11 @@ class SimRobot:
 
     # -- planned motions ------------------------------------------------------------------
     def plan_to(self, q_goal: np.ndarray, limits_scale: float = 0.5) -> np.ndarray:
-        """Ruckig joint plan from the current state to rest at `q_goal`, one sample per tick, checked.
-
-        Starts from the current joint velocity (zero acceleration) so a plan
-        made while moving continues smoothly. Limits are the datasheet's
-        velocity/acceleration/jerk times `limits_scale`. Returns (N, 7)
-        positions, the last equal to `q_goal`; raises JointLimitError if any
-        sample breaks a position or velocity limit, RobotFault if Ruckig fails.
-        """
-        kin = self.kin
-        q_goal = _joints_within_limits(kin, q_goal, "q_goal", "goal position")
-        if not 0 < limits_scale <= 1:
-            raise ValueError(f"limits_scale must be in (0, 1], got {limits_scale}")
-        inp = InputParameter(N_JOINTS)
-        inp.current_position = self._q.tolist()
-        inp.current_velocity = self._dq.tolist()
-        inp.current_acceleration = [0.0] * N_JOINTS
-        inp.target_position = q_goal.tolist()
-        inp.target_velocity = [0.0] * N_JOINTS
-        inp.target_acceleration = [0.0] * N_JOINTS
-        inp.max_velocity = (kin.dq_max * limits_scale).tolist()
-        inp.max_acceleration = (kin.ddq_max * limits_scale).tolist()
-        inp.max_jerk = (kin.dddq_max * limits_scale).tolist()
-        plan = self._sample(inp, "joint motion")
-        plan[-1] = q_goal
-        self._check_plan(plan)
-        return plan
-
-    def _sample(self, inp: InputParameter, what: str) -> np.ndarray:
-        """Plan with Ruckig (offline) and sample the positions at every tick after now: (N, 7)."""
-        traj = Trajectory(N_JOINTS)
-        result = Ruckig(N_JOINTS).calculate(inp, traj)
-        if result not in (Result.Working, Result.Finished):
-            raise RobotFault(f"Ruckig could not plan the {what} ({result})")
-        n = max(1, math.ceil(traj.duration / self.dt - 1e-9))
-        return np.array([traj.at_time(min(k * self.dt, traj.duration))[0] for k in range(1, n + 1)])
-
-    def _check_plan(self, plan: np.ndarray) -> None:
-        """Position and velocity limits of every planned tick, with the same slack as `check_command`."""
-        kin = self.kin
-        low, high = plan < kin.q_min - _TOL, plan > kin.q_max + _TOL
-        if np.any(low | high):
-            k, j = np.argwhere(low | high)[0]
-            raise JointLimitError(int(j), float(plan[k, j]), float(kin.q_min[j] if low[k, j] else kin.q_max[j]),
-                                  f"position at plan tick {k + 1}")
-        v = np.diff(np.vstack([self._q, plan]), axis=0) / self.dt
-        fast = np.abs(v) > kin.dq_max * (1 + _REL_V) + _TOL
-        if np.any(fast):
-            k, j = np.argwhere(fast)[0]
-            raise JointLimitError(int(j), float(v[k, j]), float(np.sign(v[k, j]) * kin.dq_max[j]),
-                                  f"velocity at plan tick {k + 1}")
+        """Ruckig joint plan from the current state to rest at `q_goal`, one sample per tick, checked
+        (`supervisor.motion.joint_move.plan_joint_move`): starts from the current joint velocity so a
+        plan made while moving continues smoothly; raises JointLimitError / RobotFault."""
+        q_goal = _joints_within_limits(self.kin, q_goal, "q_goal", "goal position")
+        return plan_joint_move(self.kin, self._q, self._dq, q_goal, self.dt, limits_scale)
 
     def brake(self, limits_scale: float = 1.0) -> RobotState:
         """Controlled stop: decelerate every joint to rest (Ruckig velocity interface), then one tick at rest.
@@ -217,8 +182,8 @@ class SimRobot:
         inp.max_velocity = kin.dq_max.tolist()
         inp.max_acceleration = (kin.ddq_max * limits_scale).tolist()
         inp.max_jerk = (kin.dddq_max * limits_scale).tolist()
-        plan = self._sample(inp, "stop")
-        self._check_plan(plan)
+        plan = sample_ruckig(inp, self.dt, "stop")
+        check_joint_plan(self.kin, self._q, plan, self.dt)
         for q in plan:
             self.step(q)
         return self.hold(1)

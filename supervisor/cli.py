@@ -136,8 +136,8 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
         azimuth = math.radians(args.azimuth) if args.azimuth is not None else motion["azimuth"]
         spec = DryRunSpec(stage=args.stage or cfg.default_stage, azimuth=azimuth, sampling=args.sampling,
                           scene=args.scene or motion["scene"], seed=args.seed, oracle=not args.no_oracle,
-                          sweep=motion["sweep"])
-        s = run_dry_run(cfg, spec, out)
+                          sweep=motion["sweep"], accept_reachable=args.reachable)
+        s = run_dry_run(cfg, spec, out, realtime=args.realtime)
     print(f"stage {s['stage']} ({s['sampling']}), scene {s['scene']}, azimuth {s['azimuth_deg']:g} deg: "
           f"halted at {s['halt_angle_deg']:.2f} deg ({s['halt_reason']})")
     if s.get("predicted_boundary_deg") is not None:
@@ -210,6 +210,11 @@ def build_parser() -> argparse.ArgumentParser:
     dr.add_argument("--replay", default=None, metavar="DATASET",
                     help="replay a recorded stop-and-go arc through the loop instead of rendering "
                          "(the scene, azimuth and sampling come from the recording)")
+    dr.add_argument("--realtime", action="store_true",
+                    help="run on the wall clock as the daemon does (capture thread, localization threads, "
+                         "paced ticks) instead of simulated time")
+    dr.add_argument("--reachable", action="store_true",
+                    help="an arc the arm cannot complete runs its reachable part instead of being refused")
     dr.add_argument("-o", "--out", default="out/dry-run")
     dr.set_defaults(func=cmd_dry_run)
 

@@ -20,26 +20,23 @@ from typing import Any
 
 import numpy as np
 
-from drivers.camera.sim import SimCamera
 from drivers.robot.sim import SimRobotDriver
-from supervisor.arm.kinematics import PandaKinematics
 from sim.renderer import Renderer
 from sim.robot import SimRobot
-from sim.scene import Scene, load_scene
+from sim.scene import load_scene
+from supervisor.arm.kinematics import PandaKinematics
 from supervisor.clock import SimClock
 from supervisor.config import Config
 from supervisor.errors import ConfigError
 from supervisor.evaluation.metrics import actual_boundary
-from supervisor.geometry import make_T, pose_error
+from supervisor.geometry import pose_error
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.localizer import Localizer, predict_target_pose
-from supervisor.localization.model import BoxROI, TargetModel, build_model
+from supervisor.localization.model import BoxROI, TargetModel
 from supervisor.motion.paths import ArcPath, start_camera_pose
-from supervisor.motion.plan import PathFollower
-from supervisor.prediction import make_predictor
+from supervisor.runtime.builder import Drivers, Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
-from supervisor.runtime.loop import RunRecord, SupervisorLoop, overshoot
-from supervisor.runtime.worker import InlineWorker
+from supervisor.runtime.loop import RunRecord, overshoot
 from supervisor.stages import StageConfig
 
 TOLERANCES = {"2mm_3deg": (0.002, math.radians(3.0)), "4mm_10deg": (0.004, math.radians(10.0))}
@@ -56,6 +53,7 @@ class DryRunSpec:
     seed: int = 0
     oracle: bool = True
     sweep: float | None = None  # rad; the arc ends here (default: the stage's hard limit)
+    accept_reachable: bool = False  # an arc the arm cannot complete: run its reachable part (else refused)
 
 
 def load_motion(path: str | Path) -> dict[str, Any]:
@@ -78,65 +76,54 @@ def load_motion(path: str | Path) -> dict[str, Any]:
     return out
 
 
-def _build_world(cfg: Config, scene: Scene, seed: int):
-    clock = SimClock()
-    kin = PandaKinematics(T_flange_cam=cfg.camera.T_flange_cam, urdf=cfg.robot.urdf)
-    sim = SimRobot(kin, cfg.robot.q_start, dt=cfg.robot.control_period_s, clock=clock)
-    robot = SimRobotDriver(sim)
-    renderer = Renderer(scene, cfg.camera.intrinsics)
-    camera = SimCamera(renderer, lambda: sim.state().T_base_flange @ cfg.camera.T_flange_cam, clock,
-                       cfg.camera.frame_period_s, noise_seed=seed)
-    return clock, kin, sim, robot, renderer, camera
-
-
-def _model_images(cfg: Config, sim: SimRobot, camera: SimCamera, T_base_cam0: np.ndarray):
-    """Record the two model images (2 cm apart along camera x) from the robot, as in the live protocol."""
-    shots = []
-    for T in (T_base_cam0, T_base_cam0 @ make_T(np.eye(3), [cfg.dataset.model_baseline, 0.0, 0.0])):
-        sim.move_camera_to(T)
-        frame = camera.read(timeout=cfg.camera.timeout_s)
-        shots.append((frame.image, sim.state().T_base_flange @ cfg.camera.T_flange_cam))
-    return shots
-
-
 def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print, *,
-                wrap_camera=None, wrap_robot=None, stage_override: StageConfig | None = None,
-                latency_scale: float = 1.0) -> dict[str, Any]:
+                realtime: bool = False, latency_scale: float = 1.0) -> dict[str, Any]:
     """Run one dry-run trial; write its outputs to `out` (if given) and return the summary.
 
-    `wrap_camera` / `wrap_robot` (tests: fault injection) wrap the drivers the loop
-    uses, after the model images were taken; `stage_override` replaces the stage;
-    `latency_scale` stretches the measured localization latency (tests: a slow localizer).
+    In simulated time by default; `realtime` runs the same loop on the wall clock (capture thread,
+    localization threads, paced ticks), as the daemon does. In simulated time a result reaches the
+    loop its measured compute time (times `latency_scale`) after capture, so a loaded machine sees
+    later results, as the real loop would; `latency_scale=0` releases them at capture time, which
+    makes the run independent of the machine's load (bit-reproducible).
     """
     wall0 = time.monotonic()
     _require_sim(cfg)
-    stage: StageConfig = stage_override or cfg.stage(spec.stage)
+    stage: StageConfig = cfg.stage(spec.stage)
     if spec.sampling is not None:
         stage = dataclasses.replace(stage, sampling=spec.sampling)
     scene = load_scene(spec.scene or cfg.scene)
-    clock, kin, sim, robot, renderer, camera = _build_world(cfg, scene, spec.seed)
     pivot_base = (scene.T_base_scene @ np.append(scene.pivot, 1.0))[:3]
     T_base_cam0 = start_camera_pose(pivot_base, scene.view.radius, scene.view.elevation, scene.view.heading)
 
     progress(f"dry-run: scene {scene.name}, stage {stage.name} ({stage.sampling}, n_t={stage.n_t}, "
-             f"step {math.degrees(stage.step):.2f} deg), azimuth {math.degrees(spec.azimuth):g} deg")
-    (i0, T0), (i1, T1) = _model_images(cfg, sim, camera, T_base_cam0)
-    T_target_box, half = scene.target_box_in_target()
-    model = build_model(i0, i1, T0, T1, cfg.camera.intrinsics, cfg.localization, BoxROI(T_target_box, half),
-                        board=scene.board)
-    progress(f"  target model: {model.n_features} features, frame={model.frame}")
-    sim.move_camera_to(T0)
-
-    path = ArcPath(T0, pivot_base, spec.azimuth)
-    s_end = stage.hard_limit if spec.sweep is None else min(spec.sweep, stage.hard_limit)
-    record, events, executed_theta, used_model = _gated_run(
-        cfg, stage, clock, kin, sim, robot, camera, model, path, T0, out, progress, wrap_camera=wrap_camera,
-        wrap_robot=wrap_robot, latency_scale=latency_scale, s_end=s_end)
+             f"step {math.degrees(stage.step):.2f} deg), azimuth {math.degrees(spec.azimuth):g} deg"
+             + (" (real time)" if realtime else ""))
+    drivers = open_drivers(cfg, realtime=realtime, scene=scene, seed=spec.seed)
+    events = EventLog(None if out is None else out / "events.jsonl")
+    sup = Supervisor(cfg, drivers, events, stage=stage, latency_scale=latency_scale)
+    try:
+        events.emit(drivers.clock.now(), "config", sha256=cfg.sha256, file=str(cfg.file), stage=stage.name)
+        T_target_box, half = scene.target_box_in_target()
+        model = sup.capture_model(T_base_cam0, BoxROI(T_target_box, half), board=scene.board)
+        progress(f"  target model: {model.n_features} features, frame={model.frame}")
+        plan = sup.plan_arc(pivot_base, spec.azimuth, spec.sweep, accept_reachable=spec.accept_reachable)
+        if plan.s_end < (spec.sweep or stage.hard_limit) - 1e-9:
+            progress(f"  the arc is shortened to its reachable part, 0-{math.degrees(plan.s_end):.2f} deg")
+        record = sup.run(plan)
+    finally:
+        sup.close()
+        events.close()
+        drivers.close()
+    T0 = sup.T_base_cam_model
+    executed_theta = _report_run(record, drivers, T0, progress)
     # The oracle localizes with the model the loop ended with (refined from the robot's motion if enabled).
-    oracle = _oracle(cfg, renderer, used_model, path, T0, stage.hard_limit, spec.seed,
+    renderer = Renderer(scene, cfg.camera.intrinsics) if realtime else drivers.camera.renderer
+    oracle = _oracle(cfg, renderer, sup.final_model, plan.path, T0, stage.hard_limit, spec.seed,
                      scene.reference_point_in_target()) if spec.oracle else None
-    summary = _summary(cfg, stage, scene.name, spec, record, executed_theta, oracle, events, clock.now(),
-                       time.monotonic() - wall0)
+    summary = _summary(cfg, stage, scene.name, spec, record, executed_theta, oracle, events, drivers.clock.now(),
+                       time.monotonic() - wall0, realtime)
+    if realtime and sup.last_pacer is not None:
+        summary["ticks"] = sup.last_pacer.stats.summary()
     _write_outputs(out, summary, record, oracle)
     return summary
 
@@ -150,33 +137,13 @@ def _require_sim(cfg: Config) -> None:
                           f"robot '{cfg.robot.driver}', camera '{cfg.camera.driver}'")
 
 
-def _gated_run(cfg: Config, stage: StageConfig, clock: SimClock, kin: PandaKinematics, sim: SimRobot, robot,
-               camera, model: TargetModel, path: ArcPath, T0: np.ndarray, out: Path | None, progress, *,
-               wrap_camera=None, wrap_robot=None, latency_scale: float = 1.0, s_end: float | None = None) -> tuple[RunRecord, EventLog, np.ndarray, TargetModel]:
-    """One gated arc under the supervisor loop -> (record, events, executed viewing angles, the model
-    the localizer held at the end)."""
-    events = EventLog(None if out is None else out / "events.jsonl")
-    try:
-        events.emit(clock.now(), "config", sha256=cfg.sha256, file=str(cfg.file), stage=stage.name)
-        follower = PathFollower(path, stage.limits, kin, sim.state().q, robot.control_period)
-        predictor = make_predictor(stage.predictor, stage.variant, stage.n_t, stage.step, hard_limit=stage.hard_limit)
-        loop_robot = wrap_robot(robot) if wrap_robot else robot
-        loop_camera = wrap_camera(camera) if wrap_camera else camera
-        loop = SupervisorLoop(robot=loop_robot, camera=loop_camera,
-                              worker=InlineWorker(Localizer(model, cfg.localization), latency_scale),
-                              predictor=predictor, stage=stage, follower=follower, kin=kin, T_base_cam_model=T0,
-                              T_cam_target_model=model.T_cam0_target, clock=clock, events=events,
-                              s_end=stage.hard_limit if s_end is None else s_end,
-                              frame_period=cfg.camera.frame_period_s,
-                              reference_point=model.centroid)
-        record = loop.run()
-    finally:
-        events.close()
+def _report_run(record: RunRecord, drivers: Drivers, T0: np.ndarray, progress) -> np.ndarray:
+    """Print the halt; the executed viewing angles, measured on what the robot executed (its state
+    after every command), not on the plan."""
     progress(f"  halted at {math.degrees(record.halt_s):.2f} deg ({record.halt_reason}) after "
-             f"{clock.now():.1f} s simulated")
-    # Measured on what the sim robot executed (its state after every command), not on the plan.
-    executed_theta = np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
-    return record, events, executed_theta, loop.worker.localizer.model
+             f"{drivers.clock.now():.1f} s {'on the clock' if drivers.realtime else 'simulated'}")
+    kin = drivers.kin
+    return np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
 
 
 def _write_outputs(out: Path | None, summary: dict[str, Any], record: RunRecord, oracle) -> None:
@@ -233,13 +200,23 @@ def run_replay(cfg: Config, dataset: str | Path, stage_name: str, out: Path | No
     kin = PandaKinematics(T_flange_cam=ds.T_flange_cam, urdf=cfg.robot.urdf)
     sim = SimRobot(kin, cfg.robot.q_start, dt=cfg.robot.control_period_s, clock=clock)
     robot = SimRobotDriver(sim)
-    path = ArcPath(T0, pivot, azimuth)
-    sim.move_camera_to(path.pose(0.0))
-    camera = PoseReplayCamera(ds, lambda: sim.state().T_base_flange @ ds.T_flange_cam, clock,
+    camera = PoseReplayCamera(ds, lambda: robot.state().T_base_flange @ ds.T_flange_cam, clock,
                               cfg.camera.frame_period_s)
+    drivers = Drivers(robot, camera, kin, clock, realtime=False)
+    events = EventLog(None if out is None else out / "events.jsonl")
+    sup = Supervisor(cfg, drivers, events, stage=stage)
+    try:
+        events.emit(clock.now(), "config", sha256=cfg.sha256, file=str(cfg.file), stage=stage.name)
+        sup.move_camera_to(ArcPath(T0, pivot, azimuth).pose(0.0))
+        sup.use_model(model, T0)
+        plan = sup.plan_arc(pivot, azimuth)
+        record = sup.run(plan)
+    finally:
+        sup.close()
+        events.close()
+        drivers.close()
+    executed_theta = _report_run(record, drivers, T0, progress)
     # The actual boundary below localizes the recording itself (refining the model the same way).
-    record, events, executed_theta, _ = _gated_run(cfg, stage, clock, kin, sim, robot, camera, model, path, T0,
-                                                   out, progress)
     oracle = None
     if ds.has_ground_truth:
         rows = localize_dataset(ds, model, cfg.localization)
@@ -252,7 +229,7 @@ def run_replay(cfg: Config, dataset: str | Path, stage_name: str, out: Path | No
                   "boundary": {name: actual_boundary(th, te, re, tt, tr) for name, (tt, tr) in TOLERANCES.items()}}
     spec = DryRunSpec(stage=stage.name, azimuth=azimuth, sampling="stop_and_go", seed=int(ds.meta.get("seed", 0)))
     summary = _summary(cfg, stage, str((ds.meta.get("scene") or {}).get("name", ds.name)), spec, record,
-                       executed_theta, oracle, events, clock.now(), time.monotonic() - wall0)
+                       executed_theta, oracle, events, clock.now(), time.monotonic() - wall0, False)
     summary["replay"] = str(ds.root)
     _write_outputs(out, summary, record, oracle)
     return summary
@@ -289,7 +266,7 @@ def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, 
 
 
 def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_theta: np.ndarray, oracle,
-             events: EventLog, sim_time: float, wall_time: float) -> dict[str, Any]:
+             events: EventLog, clock_time: float, wall_time: float, realtime: bool) -> dict[str, Any]:
     halt = record.halt_s
     theta_p = [p for _, p, _ in record.theta_p_history if math.isfinite(p)]
     allowed = record.s_allowed_at_brake
@@ -314,7 +291,8 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
         "max_consistency_drift_mm": 1000 * max((c[2] for c in record.consistency), default=0.0),
         "max_consistency_drift_deg": math.degrees(max((c[3] for c in record.consistency), default=0.0)),
         "faults": [e["fault"] for e in events.of_kind("fault")],
-        "simulated_time_s": sim_time, "wall_time_s": wall_time,
+        "wall_time_s": wall_time,
+        **({"realtime": True} if realtime else {"simulated_time_s": clock_time}),
     }
     if oracle is not None:
         out["actual_boundary_deg"] = {k: math.degrees(v) for k, v in oracle["boundary"].items()}

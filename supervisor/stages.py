@@ -19,10 +19,11 @@ A `stages:` mapping in the configuration YAML (degrees/ms at this edge, SI in
         consistency_limit_mm: 2.0    # target-pose consistency guard (0 = off), see runtime.loop
         consistency_limit_deg: 5.0
         pose_gap_ms: 20
+        overrun_budget: 3            # consecutive control ticks past their deadline = fault (real clock)
         limits: {velocity_deg_s: 10, acceleration_deg_s2: 20, jerk_deg_s3: 200}
 
-`StageSwitcher` applies a stage change made while moving with the stricter of
-the old and new limits (and angle bounds) until the path coordinate is at rest.
+A stage changes only at rest (the daemon refuses a change while moving), so a
+motion runs under one stage from start to halt.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from pathlib import Path
 from types import MappingProxyType
 
 from supervisor.errors import ConfigError
-from supervisor.motion.braking import PathLimits, PathState
+from supervisor.motion.braking import PathLimits
 from supervisor.yamlschema import Node, load_yaml
 
 PREDICTORS = ("long_range", "next_step", "static")
@@ -63,10 +64,15 @@ class StageConfig:
     localization_timeout: float = 1.0  # s, from capture to result
     consistency_t: float = 0.002  # m; 0 = guard off
     consistency_r: float = math.radians(5.0)  # rad; 0 = guard off
+    overrun_budget: int = 3  # consecutive control ticks past their deadline that make a fault (real clock)
 
     def theta_allowed(self, theta_p: float | None) -> float:
-        """min(theta_p - margin, hard_limit); the hard limit alone without a prediction."""
-        if theta_p is None:
+        """The one rule for the angle the gate must not pass: `min(theta_p - margin, hard_limit)`.
+
+        Without a prediction, and when the predicted boundary is at or beyond the hard limit (no
+        failure predicted inside the range, so the margin has no object), the hard limit itself.
+        """
+        if theta_p is None or theta_p >= self.hard_limit - 1e-12:
             return self.hard_limit
         return min(theta_p - self.margin, self.hard_limit)
 
@@ -104,6 +110,7 @@ def parse_stage(name: str, n: Node) -> StageConfig:
                                       min_exclusive=True) / 1000.0,
         consistency_t=n.number("consistency_limit_mm", 2.0, min=0.0, max=1000.0) / 1000.0,
         consistency_r=math.radians(n.number("consistency_limit_deg", 5.0, min=0.0, max=180.0)),
+        overrun_budget=n.integer("overrun_budget", 3, min=1, max=1000),
     )
     n.done()
     return stage
@@ -123,63 +130,3 @@ def load_stages(path: str | Path) -> Mapping[str, StageConfig]:
     """Read a YAML file whose top level holds a `stages:` mapping (other top-level keys are ignored)."""
     root = Node(load_yaml(path), path)
     return parse_stages(root)
-
-
-class StageSwitcher:
-    """The active stage and the motion limits in force, with safe switching.
-
-    `request(name)` switches at once when the path is at rest; while moving, the
-    effective limits and angle bounds are the stricter of the old and new stage
-    until `update()` sees the coordinate at rest (ds == 0 and dds == 0).
-    """
-
-    def __init__(self, stages: Mapping[str, StageConfig], initial: str) -> None:
-        self.stages = stages
-        self._stage = self._get(initial)
-        self._limits = self._stage.limits
-        self._old: list[StageConfig] = []  # stages whose bounds still apply until rest
-
-    def _get(self, name: str) -> StageConfig:
-        try:
-            return self.stages[name]
-        except KeyError:
-            known = ", ".join(sorted(self.stages)) or "none"
-            raise ConfigError(None, "stage", f"unknown stage {name!r} (known: {known})") from None
-
-    @property
-    def stage(self) -> StageConfig:
-        """The stage requested last (its predictor settings apply immediately)."""
-        return self._stage
-
-    @property
-    def limits(self) -> PathLimits:
-        """The motion limits in force now."""
-        return self._limits
-
-    @property
-    def in_transition(self) -> bool:
-        return bool(self._old)
-
-    def request(self, name: str, state: PathState) -> PathLimits:
-        """Switch to stage `name`; returns the limits in force from now on."""
-        new = self._get(name)
-        at_rest = state.ds == 0.0 and state.dds == 0.0
-        if at_rest:
-            self._old = []
-            self._limits = new.limits
-        else:
-            self._old.append(self._stage)
-            self._limits = self._limits.stricter(new.limits)
-        self._stage = new
-        return self._limits
-
-    def update(self, state: PathState) -> PathLimits:
-        """Call every tick; ends a transition once the coordinate is at rest."""
-        if self._old and state.ds == 0.0 and state.dds == 0.0:
-            self._old = []
-            self._limits = self._stage.limits
-        return self._limits
-
-    def theta_allowed(self, theta_p: float | None) -> float:
-        """Allowed angle of the current stage, the strictest over a pending transition."""
-        return min(s.theta_allowed(theta_p) for s in (self._stage, *self._old))

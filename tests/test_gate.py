@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from supervisor.motion.braking import BrakingModel, PathLimits, PathState
-from supervisor.motion.gate import Gate, allowed_angle, conservative_next
+from supervisor.motion.gate import Gate, conservative_next
 from supervisor.motion.plan import PathTracker
 
 DEG = math.pi / 180.0
@@ -106,26 +106,23 @@ def test_moving_away_from_the_boundary_is_clear():
     assert d.stop_s < 3 * DEG
 
 
-def test_brake_is_latched_until_rearm():
+def test_brake_is_latched_for_the_rest_of_the_motion():
     braking = BrakingModel(ARC)
     gate = Gate(braking, 1e-3)
     d = gate.update(PathState(1 * DEG, 10 * DEG), 1.5 * DEG, PathState(1.01 * DEG, 10 * DEG))
     assert d.brake
-    # a harmless state later still brakes: latched
+    # a harmless state later still brakes: latched (the next motion gets a new gate)
     again = gate.update(PathState(0.0), 10 * DEG, PathState(0.0))
     assert again.brake and again.latched and again.reason == d.reason
-    gate.rearm()
-    free = gate.update(PathState(0.0), 10 * DEG, PathState(0.0))
-    assert not free.brake and not free.latched
 
 
-def test_trip_and_invalid_inputs_latch_a_brake():
+def test_invalid_inputs_latch_a_brake():
     gate = Gate(BrakingModel(ARC), 1e-3)
-    assert gate.trip("stale frame", PathState(0.0, 5 * DEG)).reason == "stale frame"
-    assert gate.update(PathState(0.0), 10 * DEG).reason == "stale frame"
-    gate.rearm()
     d = gate.update(PathState(0.0), float("nan"))
     assert d.brake and d.reason == "invalid"
+    assert gate.update(PathState(0.0), 10 * DEG).reason == "invalid"
+    gate = Gate(BrakingModel(ARC), 1e-3)
+    assert gate.update(PathState(0.0), 10 * DEG, PathState(float("inf"))).reason == "invalid"
 
 
 def test_conservative_prediction_is_never_later_than_exact():
@@ -137,12 +134,6 @@ def test_conservative_prediction_is_never_later_than_exact():
                 cons, f2, d2 = run(ARC, 2e-3, start, 30 * DEG, allowed, exact=False)
                 assert f2 <= f1
                 assert max(s.s for s in cons) <= allowed + 1e-9 or d2.reason == "past"
-
-
-def test_allowed_angle():
-    assert allowed_angle(0.5, 0.01, 1.0) == pytest.approx(0.49)
-    assert allowed_angle(0.5, 0.01, 0.3) == 0.3
-    assert allowed_angle(None, 0.01, 0.3) == 0.3
 
 
 def test_conservative_next_bounds_a_real_step():

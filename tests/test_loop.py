@@ -1,5 +1,5 @@
-"""The supervisor loop end to end on the sim robot, synthetic camera and real pipeline, with faults injected
-through real driver subclasses (a camera that repeats frames or goes black, a robot whose state stalls)."""
+"""The supervisor loop end to end through the public builder on the sim robot, synthetic camera and real
+pipeline, with faults injected through real driver subclasses (a camera that repeats frames or goes black, a robot whose state stalls)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,14 @@ import pytest
 
 from drivers.camera.base import Camera, RawFrame
 from drivers.robot.base import Robot
+from sim.scene import load_scene
 from supervisor.config import load_config
-from supervisor.dryrun import DryRunSpec, run_dry_run
+from supervisor.localization.artifacts import viewing_angle
+from supervisor.localization.model import BoxROI
+from supervisor.motion.paths import start_camera_pose
+from supervisor.runtime.builder import Supervisor, open_drivers
+from supervisor.runtime.events import EventLog
+from supervisor.runtime.loop import overshoot
 
 
 @pytest.fixture(scope="module")
@@ -27,16 +33,17 @@ def _stage(cfg, **changes):
 
 
 class _Wrapped(Camera):
-    """A camera driver that forwards to another and alters its raw frames after `after` frames."""
+    """A camera driver that forwards to another and alters its raw frames after `after` frames of the run."""
 
     def __init__(self, inner: Camera, after: int, mode: str) -> None:
         super().__init__(inner.intrinsics, inner.clock)
         self.inner, self.after, self.mode, self.n = inner, after, mode, 0
+        self.armed = False  # counting starts when the gated run starts (after the model images)
         self.last: RawFrame | None = None
 
     def _grab(self, timeout: float) -> RawFrame:
         raw = self.inner._grab(timeout)
-        self.n += 1
+        self.n += self.armed
         if self.n > self.after:
             if self.mode == "repeat" and self.last is not None:
                 return self.last  # the device re-delivers an old frame (same device sequence number)
@@ -49,10 +56,11 @@ class _Wrapped(Camera):
 
 
 class _StallingRobot(Robot):
-    """Forwards to the sim driver, but once `after` commands went through, 30 ms pass without a state."""
+    """Forwards to the sim driver, but once `after` commands of the run went through, 30 ms pass without a state."""
 
     def __init__(self, inner: Robot, after: int) -> None:
         self.inner, self.after, self.n = inner, after, 0
+        self.armed = False
 
     @property
     def control_period(self) -> float:
@@ -62,7 +70,7 @@ class _StallingRobot(Robot):
         return self.inner.state()
 
     def command(self, q):
-        self.n += 1
+        self.n += self.armed
         if self.n == self.after:
             for _ in range(30):  # the robot moves on, the supervisor hears nothing for 30 ticks
                 self.inner.command(q)
@@ -72,9 +80,36 @@ class _StallingRobot(Robot):
         self.inner.stop()
 
 
-def _run(cfg, stage, **kw):
-    spec = DryRunSpec(stage=stage.name, azimuth=math.radians(90.0), oracle=False)
-    return run_dry_run(cfg, spec, None, progress=lambda m: None, stage_override=stage, **kw)
+def _run(cfg, stage, *, wrap_camera=None, wrap_robot=None, latency_scale: float = 1.0, out=None) -> dict:
+    """One gated arc at azimuth 90 through the public builder, drivers wrapped for fault injection
+    (the wrappers start counting when the gated run starts); a summary of what happened."""
+    scene = load_scene(cfg.scene)
+    pivot = (scene.T_base_scene @ np.append(scene.pivot, 1.0))[:3]
+    T0 = start_camera_pose(pivot, scene.view.radius, scene.view.elevation, scene.view.heading)
+    drivers = open_drivers(cfg, scene=scene)
+    wrappers = []
+    if wrap_robot:
+        drivers.robot = wrap_robot(drivers.robot)
+        wrappers.append(drivers.robot)
+    if wrap_camera:
+        drivers.camera = wrap_camera(drivers.camera)
+        wrappers.append(drivers.camera)
+    events = EventLog(None if out is None else out / "events.jsonl")
+    sup = Supervisor(cfg, drivers, events, stage=stage, latency_scale=latency_scale)
+    box, half = scene.target_box_in_target()
+    sup.capture_model(T0, BoxROI(box, half), board=scene.board)
+    for w in wrappers:
+        w.armed = True
+    plan = sup.plan_arc(pivot, math.radians(90.0))
+    rec = sup.run(plan)
+    events.close()
+    executed = np.array([viewing_angle(sup.T_base_cam_model, drivers.kin.fk(q, "camera")) for q in rec.trajectory_q])
+    over, short = overshoot(np.asarray(rec.trajectory_t), executed, rec.allowance_history)
+    return {"halt_reason": rec.halt_reason, "halt_angle_deg": math.degrees(rec.halt_s),
+            "max_executed_angle_deg": math.degrees(executed.max()), "faults": [e["fault"] for e in events.of_kind("fault")],
+            "n_predictions": len(rec.theta_p_history), "n_samples": len(rec.samples),
+            "max_overshoot_deg": math.degrees(over), "revision_shortfall_deg": math.degrees(short),
+            "max_consistency_drift_mm": 1000 * max((c[2] for c in rec.consistency), default=0.0)}
 
 
 def test_stop_and_go_runs_to_the_hard_limit_without_overshoot(cfg):
@@ -101,8 +136,7 @@ def test_continuous_allowance_never_runs_more_than_a_step_ahead_of_the_samples(c
     import json
 
     stage = _stage(cfg, sampling="continuous", hard_limit=math.radians(9.0), warmup_steps=2)
-    spec = DryRunSpec(stage=stage.name, azimuth=math.radians(90.0), oracle=False)
-    s = run_dry_run(cfg, spec, tmp_path, progress=lambda m: None, stage_override=stage)
+    s = _run(cfg, stage, out=tmp_path)
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     furthest, checked = 0.0, 0
     for e in events:
@@ -116,8 +150,6 @@ def test_continuous_allowance_never_runs_more_than_a_step_ahead_of_the_samples(c
 
 
 def test_overshoot_bounds_each_tick_by_the_allowance_then_in_force():
-    from supervisor.runtime.loop import overshoot
-
     t = np.arange(0.0, 1.0, 0.1)
     s = np.minimum(t, 0.55)  # moves at 1 rad/s, stops at 0.55
     # allowance 0.6 from t=0 -> never passed
@@ -140,8 +172,7 @@ def test_repeated_frame_is_a_stale_frame_fault_and_stops(cfg):
 def test_slow_localization_is_a_timeout_fault_and_stops(cfg):
     # Every localization takes ~100x its real compute time (seconds): the first frame's result is
     # still missing when the stage's 1 s timeout expires -> brake, latched, before the first step.
-    spec = DryRunSpec(stage="explore", azimuth=math.radians(90.0), oracle=False)
-    s = run_dry_run(cfg, spec, None, progress=lambda m: None, stage_override=_stage(cfg), latency_scale=100.0)
+    s = _run(cfg, _stage(cfg), latency_scale=100.0)
     assert s["faults"] == ["localization_timeout"]
     assert s["halt_reason"] == "fault:localization_timeout"
     assert s["halt_angle_deg"] < 1e-6 and s["n_predictions"] == 0
@@ -180,8 +211,7 @@ def test_model_refinement_in_the_loop_after_the_warmup_steps(cfg, tmp_path, cont
     loc = dataclasses.replace(cfg.localization, model=dataclasses.replace(
         cfg.localization.model, refine_positions=2, refine_continuous=continuous))
     cfg2 = dataclasses.replace(cfg, localization=loc)
-    spec = DryRunSpec(stage="explore", azimuth=math.radians(90.0), oracle=False)
-    s = run_dry_run(cfg2, spec, tmp_path, progress=lambda m: None, stage_override=_stage(cfg))
+    s = _run(cfg2, _stage(cfg), out=tmp_path)
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     refined = [e for e in events if e["kind"] == "model_refined"]
     assert refined[0]["step"] == 1  # after steps 0 and 1 (0 and 1.5 deg)

@@ -8,8 +8,8 @@ import textwrap
 import pytest
 
 from supervisor.errors import ConfigError
-from supervisor.motion.braking import PathLimits, PathState
-from supervisor.stages import StageSwitcher, load_stages, parse_stages
+from supervisor.motion.braking import PathLimits
+from supervisor.stages import load_stages, parse_stages
 from supervisor.yamlschema import Node, load_yaml_text
 
 DEG = math.pi / 180.0
@@ -109,46 +109,10 @@ def test_duplicate_stage_and_empty_stages_are_refused():
     assert err.value.key == "stages"
 
 
-REST = PathState(0.1)
-MOVING = PathState(0.1, 5 * DEG, 0.0)
-BRAKING = PathState(0.1, 0.0, -1 * DEG)  # momentarily zero velocity is not rest
-
-
-def test_switch_at_rest_applies_new_limits_at_once():
-    sw = StageSwitcher(stages_from(GOOD), "fast")
-    assert sw.request("slow", REST) == PathLimits(5 * DEG, 60 * DEG, 100 * DEG)
-    assert not sw.in_transition and sw.stage.name == "slow"
-
-
-def test_switch_while_moving_keeps_the_stricter_until_at_rest():
-    st = stages_from(GOOD)
-    sw = StageSwitcher(st, "fast")
-    stricter = PathLimits(5 * DEG, 40 * DEG, 100 * DEG)
-    assert sw.request("slow", MOVING) == stricter
-    assert sw.in_transition and sw.stage.name == "slow"
-    assert sw.update(MOVING) == stricter
-    assert sw.update(BRAKING) == stricter
-    # angle bounds: the stricter of both stages (slow's margin 2 deg and hard limit 30 deg)
-    assert sw.theta_allowed(20 * DEG) == pytest.approx(18 * DEG)
-    assert sw.update(REST) == st["slow"].limits
-    assert not sw.in_transition
-
-
-def test_switch_back_while_moving_stays_strict():
-    st = stages_from(GOOD)
-    sw = StageSwitcher(st, "fast")
-    sw.request("slow", MOVING)
-    # back to fast before coming to rest: still the stricter of everything involved
-    assert sw.request("fast", MOVING) == PathLimits(5 * DEG, 40 * DEG, 100 * DEG)
-    assert sw.theta_allowed(60 * DEG) == pytest.approx(30 * DEG)  # slow's hard limit still holds
-    assert sw.update(REST) == st["fast"].limits
-    assert sw.theta_allowed(60 * DEG) == pytest.approx(45 * DEG)
-
-
-def test_unknown_stage_is_a_config_error():
-    sw = StageSwitcher(stages_from(GOOD), "fast")
-    with pytest.raises(ConfigError, match="unknown stage 'drill'"):
-        sw.request("drill", REST)
-    assert sw.stage.name == "fast"
-    with pytest.raises(ConfigError):
-        StageSwitcher(stages_from(GOOD), "nope")
+def test_theta_allowed_is_one_rule():
+    st = stages_from(GOOD)["slow"]  # margin 2 deg, hard limit 30 deg
+    assert st.theta_allowed(20 * DEG) == pytest.approx(18 * DEG)
+    assert st.theta_allowed(31 * DEG) == pytest.approx(30 * DEG)  # at/after the hard limit: no margin
+    assert st.theta_allowed(30.5 * DEG) == pytest.approx(30 * DEG)
+    assert st.theta_allowed(None) == pytest.approx(30 * DEG)
+    assert st.theta_allowed(1 * DEG) == pytest.approx(-1 * DEG)  # already past: stop now

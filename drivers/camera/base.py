@@ -32,6 +32,7 @@ class RawFrame:
     device_seq: int | None = None
     device_time: float | None = None  # device clock, seconds; never used for staleness
     meta: dict[str, Any] = field(default_factory=dict)
+    exposure_t: float | None = None  # host clock at exposure, when the backend knows it (else: arrival)
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,7 @@ class Camera(abc.ABC):
         if self._closed:
             raise DriverError(f"{type(self).__name__} is closed")
         raw = self._grab(timeout)
-        t = self.clock.now()
+        t = self.clock.now() if raw.exposure_t is None else float(raw.exposure_t)
         self._seq += 1
         repeated = (
             raw.device_seq is not None

@@ -8,7 +8,8 @@ import numpy as np
 
 from drivers.camera.base import Camera, RawFrame
 from sim.renderer import Renderer
-from supervisor.clock import Clock
+from sim.scene import Scene, load_scene
+from supervisor.clock import Clock, SimClock
 
 
 class SimCamera(Camera):
@@ -28,10 +29,34 @@ class SimCamera(Camera):
         self.noise_seed = noise_seed
         self._frame_index = 0
 
+    @classmethod
+    def from_config(cls, cfg, *, clock: Clock, robot, scene: str | Scene | None = None, seed: int = 0,
+                    **_: object) -> SimCamera:
+        """Renders `scene` (a Scene, a scene name or file; default: the config's) from the camera pose
+        the robot reports (its flange pose and the configured `T_flange_cam`), at `camera.frame_rate_hz`."""
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene or cfg.scene)
+        if isinstance(clock, SimClock):
+            renderer = Renderer(scene, cfg.camera.intrinsics)
+        else:  # the real clock: render in a process of its own, off the control loop's GIL
+            from sim.render_process import RenderProcess
+
+            renderer = RenderProcess(scene, cfg.camera.intrinsics)
+        T_flange_cam = np.array(cfg.camera.T_flange_cam, float)
+        return cls(renderer, lambda: robot.state().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
+                   noise_seed=seed)
+
+    def _close(self) -> None:
+        close = getattr(self.renderer, "close", None)  # a RenderProcess owns a child process
+        if close is not None:
+            close()
+
     def _grab(self, timeout: float) -> RawFrame:
         self._pace(self.frame_period)
+        exposed = self.clock.now()  # the pose is sampled now; rendering takes real time on a real clock
         T_base_cam = np.array(self.pose_source(), dtype=float)
         rendered = self.renderer.render(T_base_cam, frame_index=self._frame_index, noise_seed=self.noise_seed)
         self._frame_index += 1
-        return RawFrame(rendered.image, device_seq=self._frame_index, device_time=self.clock.now(),
-                        meta={"T_base_cam": T_base_cam, "T_cam_target_true": rendered.T_cam_target})
+        return RawFrame(rendered.image, device_seq=self._frame_index, device_time=exposed,
+                        meta={"T_base_cam": T_base_cam, "T_cam_target_true": rendered.T_cam_target},
+                        exposure_t=exposed)

@@ -5,15 +5,23 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.robot.base import Robot
+from supervisor.arm.kinematics import PandaKinematics
+from supervisor.clock import Clock
 from sim.robot import SimRobot
 from supervisor.arm.state import RobotState
 
 
 class SimRobotDriver(Robot):
-    """Wraps `SimRobot`: each `command` executes one tick and advances the simulated clock."""
+    """Wraps `SimRobot`: each `command` executes one tick (advancing a simulated clock, or stamped on
+    the real one)."""
 
     def __init__(self, sim: SimRobot) -> None:
         self.sim = sim
+
+    @classmethod
+    def from_config(cls, cfg, *, kin: PandaKinematics, clock: Clock, **_: object) -> SimRobotDriver:
+        """The configured sim robot at `robot.q_start_deg`, ticking at `robot.control_rate_hz`."""
+        return cls(SimRobot(kin, cfg.robot.q_start, dt=cfg.robot.control_period_s, clock=clock))
 
     @property
     def control_period(self) -> float:

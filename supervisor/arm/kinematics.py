@@ -343,6 +343,23 @@ class PandaKinematics:
                 dq *= max_step / peak
             q = np.clip(q + dq, q_min, q_max)
 
+    def why_stuck(self, q: np.ndarray, frame: str = "camera", *, near: float = 1e-3,
+                  sigma_singular: float = 0.02) -> str:
+        """What blocks an IK iterate that stopped short of its goal: the joints held at a limit, or a
+        singularity (smallest singular value of the frame's Jacobian), said in words."""
+        q = np.asarray(q, dtype=float)
+        parts = []
+        for j in np.flatnonzero(q <= self.q_min + near):
+            parts.append(f"joint {j + 1} at its lower limit {math.degrees(self.q_min[j]):.2f} deg")
+        for j in np.flatnonzero(q >= self.q_max - near):
+            parts.append(f"joint {j + 1} at its upper limit {math.degrees(self.q_max[j]):.2f} deg")
+        sigma = float(np.linalg.svd(self.jacobian(q, frame), compute_uv=False)[-1])
+        if sigma < sigma_singular:
+            parts.append(f"near a singularity (smallest Jacobian singular value {sigma:.4f})")
+        if not parts:
+            return f"no joint is at a limit and the arm is not singular (smallest singular value {sigma:.3f})"
+        return "blocked by " + ", ".join(parts)
+
     def ik_or_raise(self, T_base_goal: np.ndarray, q_seed: np.ndarray | None = None, frame: str = "camera",
                     **options: float) -> np.ndarray:
         """Like `ik` but returns only `q`, raising KinematicsError (with `.result`) if no solution is found.
@@ -377,11 +394,19 @@ class PandaKinematics:
                     return retry.q
                 if retry.pos_err + retry.rot_err < res.pos_err + res.rot_err:
                     res = retry
+            if not res.success and res.pos_err < 2e-3 and res.rot_err < math.radians(1.0):
+                # Close but crawling (a joint near its limit, a shallow valley): let the best iterate go on.
+                polish = self.ik(T_base_goal, res.q, frame, **{**options, "max_iter": 400, "null_gain": 0.0})
+                if polish.success:
+                    return polish.q
+                if polish.pos_err + polish.rot_err < res.pos_err + res.rot_err:
+                    res = polish
         if not res.success:
             err = KinematicsError(
                 f"IK for the {frame} frame did not converge after {res.iterations} iterations: "
                 f"position error {res.pos_err * 1000:.3f} mm, rotation error {math.degrees(res.rot_err):.4f} deg "
-                f"(goal at {np.round(np.asarray(T_base_goal)[:3, 3], 4).tolist()} m in the base frame)"
+                f"(goal at {np.round(np.asarray(T_base_goal)[:3, 3], 4).tolist()} m in the base frame); "
+                f"{self.why_stuck(res.q, frame)}"
             )
             err.result = res  # type: ignore[attr-defined]
             raise err

@@ -12,8 +12,9 @@ Direction: `s` increases toward the boundary (the viewing angle grows); only an
 upper bound on the rest position is enforced. Motion toward smaller `s` is
 always permitted by the gate.
 
-A brake is latched: every later `update` says brake until `rearm()`. Faults
-found elsewhere (stale frame, no model, ...) latch it via `trip(reason)`.
+A brake is latched: every later `update` says brake. A gate serves one motion;
+the next motion, after an explicit re-arm, gets a new gate. Faults found
+elsewhere (stale frame, no model, ...) are the loop's and brake it directly.
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ class GateDecision:
     `stop_s`: where the coordinate comes to rest if the decision is followed
     (braking now when `brake`, otherwise braking at the latest next tick).
     `reason`: "clear", "boundary" (braking now is the last chance), "past"
-    (even braking now ends beyond `theta_allowed`), "invalid" (non-finite input)
-    or the reason given to `trip`. `latched` is True while a brake is held.
+    (even braking now ends beyond `theta_allowed`) or "invalid" (non-finite input).
+    `latched` is True while a brake is held.
     """
 
     brake: bool
@@ -43,16 +44,6 @@ class GateDecision:
     latched: bool
     reason: str
     theta_allowed: float
-
-
-def allowed_angle(theta_p: float | None, margin: float, hard_limit: float) -> float:
-    """`theta_allowed = min(theta_p - margin, hard_limit)`; without a prediction, the hard limit.
-
-    Whether motion without a prediction is permitted at all (warm-up) is the loop's decision.
-    """
-    if theta_p is None:
-        return float(hard_limit)
-    return float(min(theta_p - margin, hard_limit))
 
 
 def conservative_next(state: PathState, braking: BrakingModel, dt: float) -> PathState:
@@ -89,15 +80,9 @@ class Gate:
     def latched(self) -> bool:
         return self._latch is not None
 
-    def rearm(self) -> None:
-        """Release a latched brake (an explicit operator/loop action; nothing else releases it)."""
-        self._latch = None
-
-    def trip(self, reason: str, state: PathState | None = None, theta_allowed: float = math.nan) -> GateDecision:
-        """Latch a brake for an outside reason (fault); returns the latched decision."""
-        if self._latch is None:
-            stop = self.braking.stop_position(state)[0] if state is not None else math.nan
-            self._latch = GateDecision(True, stop, True, reason, theta_allowed)
+    def _invalid(self, theta_allowed: float) -> GateDecision:
+        """Latch a brake for non-finite input."""
+        self._latch = GateDecision(True, math.nan, True, "invalid", theta_allowed)
         return self._latch
 
     def update(self, state: PathState, theta_allowed: float, next_state: PathState | None = None) -> GateDecision:
@@ -111,11 +96,11 @@ class Gate:
             return self._latch
         values = (state.s, state.ds, state.dds, theta_allowed)
         if not all(math.isfinite(v) for v in values):
-            return self.trip("invalid", None, theta_allowed)
+            return self._invalid(theta_allowed)
         if next_state is None:
             next_state = self.predict(state) if self.predict else conservative_next(state, self.braking, self.dt)
         if not all(math.isfinite(v) for v in (next_state.s, next_state.ds, next_state.dds)):
-            return self.trip("invalid", None, theta_allowed)
+            return self._invalid(theta_allowed)
         peak_next, stop_next = self.braking.furthest(next_state)
         if peak_next <= theta_allowed + TOLERANCE and next_state.s <= theta_allowed + TOLERANCE:
             return GateDecision(False, stop_next, False, "clear", theta_allowed)

@@ -12,6 +12,7 @@ predicted failure boundary; a motion toward smaller `s` only ever moves away.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -53,19 +54,6 @@ class MotionRejected(SupervisorError):
 
     def __reduce__(self):
         return type(self), (self.reason, self.s, self.joint)
-
-
-@dataclass(frozen=True)
-class PathMotion:
-    """A path plus the range of its coordinate to travel, [s_start, s_end]."""
-
-    path: PathLike
-    s_end: float
-    s_start: float = 0.0
-
-    def plan(self, limits: PathLimits, kin: KinematicsLike, q0: np.ndarray, dt: float,
-             frame: str = "camera") -> JointPlan:
-        return plan_path(self.path, self.s_end, limits, kin, q0, dt, s0=self.s_start, frame=frame)
 
 
 @dataclass(frozen=True)
@@ -338,3 +326,65 @@ class PathFollower:
         self.tracker.commit(step)
         self.q = q
         return st.s, st.ds, st.dds, q
+
+
+@dataclass(frozen=True)
+class PathCheck:
+    """The whole motion checked before the first command.
+
+    `reachable` is how far along the path (from `s_start`) every check passed; it equals
+    `s_end` when the whole motion is feasible, otherwise `problem` says why not (which
+    joint, which limit, at which path coordinate).
+    """
+
+    s_start: float
+    s_end: float
+    reachable: float
+    problem: MotionRejected | None
+    q_end: np.ndarray | None  # joints at `reachable`
+
+    @property
+    def ok(self) -> bool:
+        return self.problem is None
+
+
+def check_path(path: PathLike, s_end: float, limits: PathLimits, kin: KinematicsLike, q0: np.ndarray, *,
+               s0: float = 0.0, ds: float = math.radians(0.1), frame: str = "camera",
+               margin: float = 0.0) -> PathCheck:
+    """Plan before moving, the whole motion: IK along the path every `ds`, joint position limits, and the
+    joint velocities the path needs at the stage's top speed (|dq/ds| * velocity <= dq_max).
+
+    The IK follows the path from `q0` (seeded by the previous sample, no null-space pull: the branch
+    the follower will track). Nothing moves. The first failing sample ends the check; `reachable` is
+    the last sample before it that passed (minus `margin`, not below `s0`).
+    """
+    if not (math.isfinite(s0) and math.isfinite(s_end)):
+        return PathCheck(s0, s_end, s0, MotionRejected("path range is not finite", s0), None)
+    if not (ds > 0 and math.isfinite(ds)):
+        raise ValueError(f"ds must be a positive finite number, got {ds}")
+    n = max(1, int(math.ceil((s_end - s0) / ds - 1e-9)))
+    grid = np.linspace(s0, s_end, n + 1)
+    q_prev = np.asarray(q0, dtype=float)
+    reached, q_ok = s0, None
+    try:
+        _check_joints(kin, q_prev, None, 1.0, s0)
+        for k, s in enumerate(grid):
+            q = _solve(kin, path, float(s), q_prev, frame)
+            _check_joints(kin, q, None, 1.0, float(s))
+            if k > 0:
+                rate = np.abs(q - q_prev) / (grid[k] - grid[k - 1])  # rad of joint per unit of s
+                need = rate * limits.velocity
+                fast = np.flatnonzero(need > kin.dq_max)
+                if fast.size:
+                    j = int(fast[0])
+                    raise MotionRejected(
+                        f"joint velocity {need[j]:.3f} rad/s at the path's top speed exceeds the limit "
+                        f"{kin.dq_max[j]:.3f} rad/s", float(s), j)
+            elif np.max(np.abs(q - q_prev)) > START_TOLERANCE:
+                j = int(np.argmax(np.abs(q - q_prev)))
+                raise MotionRejected(f"robot is not at the path start (joint off by {abs(q[j] - q_prev[j]):.4f} rad)",
+                                     float(s), j)
+            reached, q_ok, q_prev = float(s), q, q
+    except MotionRejected as exc:
+        return PathCheck(s0, s_end, max(s0, reached - margin) if q_ok is not None else s0, exc, q_ok)
+    return PathCheck(s0, s_end, float(s_end), None, q_ok)

@@ -1,5 +1,6 @@
 """Artifact model (scaled EMG), its variants, and the predictors built on it."""
 
-from supervisor.prediction.predictors import PREDICTORS, Prediction, make_predictor
+from supervisor.prediction.base import Prediction, Predictor
+from supervisor.prediction.predictors import PREDICTORS, make_predictor
 
-__all__ = ["PREDICTORS", "Prediction", "make_predictor"]
+__all__ = ["PREDICTORS", "Prediction", "Predictor", "make_predictor"]

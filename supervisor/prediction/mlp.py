@@ -16,7 +16,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from supervisor.prediction.emg import ANGLE, Axis, emg, initial_guesses
-from supervisor.prediction.predictors import Prediction, _Samples
+from supervisor.prediction.base import Prediction, _Samples
 
 _SIZES = (1, 10, 10, 10, 1)
 _N_ARTIFICIAL = 5

@@ -17,44 +17,13 @@ from the stage. A predictor never raises for bad data: it returns
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 
+from supervisor.prediction.base import Prediction, _Samples
 from supervisor.prediction.emg import ANGLE, Axis
+from supervisor.prediction.mlp import MLPPredictor
 from supervisor.prediction.models import VARIANTS, ModelFit, fit_variant
-
-
-@dataclass(frozen=True)
-class Prediction:
-    valid: bool
-    boundary: float  # SI; nan when not valid
-    allow_next: bool | None  # next-step rule (None: the predictor has no opinion)
-    reason: str
-    x_now: float  # SI, the furthest sampled position
-    fit: object | None = None  # FitResult (params in fit units) when there is one
-    params: tuple[float, float, float] | None = None  # (alpha, K, mu) in fit units, for plots
-    scale: float = 1.0  # EMG width in fit units (1 = the paper's model): curve = emg(x, *params, scale)
-
-
-@dataclass
-class _Samples:
-    xs: list[float] = field(default_factory=list)  # SI
-    ns: list[float] = field(default_factory=list)
-    steps: int = 0
-
-    def add(self, xs: np.ndarray, ns: np.ndarray) -> None:
-        xs = np.asarray(xs, float).ravel()
-        ns = np.asarray(ns, float).ravel()
-        if xs.shape != ns.shape:
-            raise ValueError(f"xs and ns differ in length ({len(xs)} vs {len(ns)})")
-        self.xs.extend(xs.tolist())
-        self.ns.extend(ns.tolist())
-        self.steps += 1
-
-    @property
-    def x_now(self) -> float:
-        return max(self.xs) if self.xs else 0.0
 
 
 def _allow(boundary: float, x_now: float, step: float, x_max: float) -> bool:
@@ -178,7 +147,5 @@ def make_predictor(kind: str, variant: str, n_t: float, step: float, *, axis: Ax
     if kind == "static":
         return StaticEnvelope(hard_limit if static_limit is None else static_limit, step)
     if kind == "mlp":
-        from supervisor.prediction.mlp import MLPPredictor
-
         return MLPPredictor(n_t, step, axis, hard_limit, seed=seed)
     raise ValueError(f"unknown predictor {kind!r}; expected one of {PREDICTORS}")

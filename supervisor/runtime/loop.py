@@ -22,7 +22,17 @@ Per tick:
 
 Fail safe: no valid prediction once the warm-up allowance is used up, a stale or
 missing frame, a localization not back within the stage's timeout, a robot-state
-gap, a rejected joint command -> brake, latched.
+gap, a robot state that is not finite, has the wrong shape, lies outside the joint
+limits or goes back in time, a rejected joint command, the overrun budget used up,
+a stop request, and any exception raised in a tick by a driver, the worker or the
+predictor -> brake, latched, one fault event with the reason. The brake is the
+follower's braking profile while the robot still takes commands; after the robot
+itself failed (its state or command raised) it is the driver's own stop. No
+exception leaves `run` while the robot moves.
+
+Everything the loop touches is injected (STYLE 4): robot, frame source (a capture
+thread, or inline reads in simulated time), localization worker, predictor,
+kinematics, clock, pacer and event log; `runtime.builder` wires them from a config.
 The path coordinate `s` equals the viewing angle `theta` for an arc that starts
 at the model view (`ArcPath` rotates the camera rigidly by exactly `s`).
 """
@@ -36,18 +46,19 @@ from typing import Any
 
 import numpy as np
 
+from supervisor.arm.state import state_problem
 from supervisor.clock import Clock
 from supervisor.errors import CameraTimeout, SupervisorError
 from supervisor.geometry import pose_error
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.localizer import predict_target_pose
-from supervisor.localization.refine import ModelRefiner
-from supervisor.motion.braking import PathState
 from supervisor.motion.gate import Gate
 from supervisor.motion.plan import MotionRejected, PathFollower
 from supervisor.runtime.events import EventLog
 from supervisor.runtime.history import StateHistory
-from supervisor.runtime.worker import FrameJob, InlineWorker
+from supervisor.runtime.pacer import SimPacer
+from supervisor.runtime.protocols import FrameSource, Kinematics, LocalizationWorker, RobotDriver
+from supervisor.runtime.worker import FrameJob
 from supervisor.stages import StageConfig
 
 _REST_V = 1e-9  # path velocity below which the robot is at rest
@@ -119,24 +130,21 @@ class RunRecord:
     fits: list[dict[str, Any]] = field(default_factory=list)  # per predictor update
 
 
+class _RobotLost(Exception):
+    """The robot's own state or command failed: it may no longer take commands (driver stop)."""
+
+
 class SupervisorLoop:
     """Runs one gated motion along `path` (s from its current value to `s_end`)."""
 
-    def __init__(self, *, robot, camera, worker: InlineWorker, predictor, stage: StageConfig, follower: PathFollower,
-                 kin, T_base_cam_model: np.ndarray, T_cam_target_model: np.ndarray, clock: Clock,
-                 events: EventLog, s_end: float, frame_period: float,
-                 reference_point: np.ndarray | None = None) -> None:
+    def __init__(self, *, robot: RobotDriver, frames: FrameSource, worker: LocalizationWorker, predictor,
+                 stage: StageConfig, follower: PathFollower, kin: Kinematics, T_base_cam_model: np.ndarray,
+                 T_cam_target_model: np.ndarray, clock: Clock, events: EventLog, s_end: float,
+                 frame_period: float, reference_point: np.ndarray | None = None, pacer=None) -> None:
         self.robot = robot
-        self.camera = camera
+        self.frames = frames
         self.worker = worker
-        # Model refinement from the robot's motion (localization.model.refine_positions; 0 = off):
-        # observations from the first steps, the model re-triangulated once they are done, and with
-        # refine_continuous again after every later step (from every frame so far).
-        loc = getattr(worker, "localizer", None)
-        refine_steps = loc.settings.model.refine_positions if loc is not None else 0
-        self._refiner = ModelRefiner(loc.model) if refine_steps > 0 else None
-        self._refine_steps = refine_steps
-        self._refine_continuous = bool(loc is not None and loc.settings.model.refine_continuous)
+        self.pacer = pacer if pacer is not None else SimPacer()
         self.predictor = predictor
         self.stage = stage
         self.follower = follower
@@ -170,6 +178,14 @@ class SupervisorLoop:
         self._next_frame_t = -math.inf
         self._closing: set[int] = set()  # continuous mode: steps complete in angle, awaiting localizations
         self._evidence = 0.0  # furthest sample angle the predictor has seen (rad)
+        self._rest_t: float | None = None  # stop-and-go: when the robot came to rest for this step's frames
+        self._stop_request: str | None = None  # set from another thread (operator stop, signal)
+        self._q_min, self._q_max = np.asarray(kin.q_min, float), np.asarray(kin.q_max, float)
+
+    def request_stop(self, reason: str = "stop") -> None:
+        """Brake at once and halt, latched (thread-safe: the tick picks it up). Always accepted."""
+        if self._stop_request is None:
+            self._stop_request = reason
 
     # -- allowances ----------------------------------------------------------------------
     def _warmup_allowance(self) -> float:
@@ -185,10 +201,7 @@ class SupervisorLoop:
         valid = pred is not None and pred.valid
         if valid:
             self._valid_prediction = True
-            if pred.boundary >= self.stage.hard_limit - 1e-12:
-                allowed = self.stage.hard_limit  # no failure predicted inside the range: the margin has no object
-            else:
-                allowed = min(pred.boundary - self.stage.margin, self.stage.hard_limit)
+            allowed = self.stage.theta_allowed(pred.boundary)
             allow_next = pred.allow_next is not False
             if self.stage.sampling == "continuous":
                 # Moving, the paper's next-step rule becomes a horizon: the prediction made from samples
@@ -236,18 +249,24 @@ class SupervisorLoop:
             return None
         return self.kin.fk(q, "camera")
 
-    def _grab(self, now: float) -> bool:
-        """Read one frame and submit it; False on a camera fault (caller brakes)."""
+    def _grab(self, now: float, not_before: float | None = None) -> bool | None:
+        """Take one frame and submit it: True when submitted, None when no new frame is there yet or the
+        worker dropped it (try again next tick), False on a camera fault (the loop brakes)."""
         try:
-            frame = self.camera.read(timeout=self.stage.frame_timeout)
+            frame = self.frames.take(now, self.stage.frame_timeout, not_before)
         except CameraTimeout as exc:
             self._fault(now, "camera_timeout", str(exc))
             return False
-        except SupervisorError as exc:
-            self._fault(now, "camera_fault", str(exc))
+        except Exception as exc:  # noqa: BLE001 - any camera failure (DriverError, OSError, ...) is a fault
+            self._fault(now, "camera_fault", f"{type(exc).__name__}: {exc}")
             return False
+        if frame is None:
+            return None
         if frame.repeated or (self._last_frame_t is not None and frame.t <= self._last_frame_t):
             self._fault(now, "stale_frame", f"frame seq {frame.seq} at t={frame.t:.4f} is not new")
+            return False
+        if now - frame.t > 3 * self.frame_period + self.stage.frame_timeout:
+            self._fault(now, "stale_frame", f"frame seq {frame.seq} is {(now - frame.t) * 1000:.0f} ms old")
             return False
         self._last_frame_t = frame.t
         T_base_cam = self._camera_pose_at(min(frame.t, self.history.latest_time or frame.t))
@@ -259,7 +278,9 @@ class SupervisorLoop:
         else:
             hint = predict_target_pose(T_base_cam, self.T_base_cam_model, self.T_cam_target_model)
         job = FrameJob(frame.t, frame.seq, frame.image, T_base_cam, self._step, dict(frame.meta))
-        self.worker.submit(job, hint)
+        if not self.worker.submit(job, hint):
+            self.events.emit(now, "frame_dropped", seq=frame.seq, reason="localization queue full")
+            return None
         self._awaiting[self._step] = self._awaiting.get(self._step, 0) + 1
         return True
 
@@ -274,12 +295,14 @@ class SupervisorLoop:
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
             self._awaiting[job.step] -= 1
-            if self._refiner is not None and res.matches is not None and \
-                    (self._refine_continuous or job.step < self._refine_steps):
-                self._refiner.add(job.T_base_cam, *res.matches)
             self.events.emit(now, "localization", step=job.step, frame_t=job.t, theta_deg=math.degrees(theta),
                              n_inliers=res.n_inliers, status=res.status.name,
                              latency_ms=(jr.ready_t - job.t) * 1000)
+        self._emit_notes(now)
+
+    def _emit_notes(self, now: float) -> None:
+        for note in self.worker.take_notes():
+            self.events.emit(note.pop("t", now), "model_refined", **note)
 
     def _update_predictor(self, now: float, step: int) -> None:
         samples = self._step_samples.get(step, [])
@@ -300,12 +323,8 @@ class SupervisorLoop:
                                  "boundary": None if pred is None else pred.boundary})
         self._check_consistency(now, step, samples)
         self._set_prediction(now, pred)
-        if self._refiner is not None and step >= self._refine_steps - 1:
-            model, stats = self._refiner.refined()
-            self.worker.localizer.set_model(model)
-            if not self._refine_continuous:
-                self._refiner = None
-            self.events.emit(now, "model_refined", step=step, **stats)
+        self.worker.refine(now, step)  # model refinement from the robot's motion, if the schedule says so
+        self._emit_notes(now)
 
     def _check_consistency(self, now: float, step: int, samples: list[Sample]) -> None:
         """The consistency guard: trip (latched) when the step's mean target-pose drift exceeds the limit."""
@@ -340,9 +359,47 @@ class SupervisorLoop:
                          theta_allowed_deg=math.degrees(self._theta_allowed))
         self._phase = Phase.BRAKING
 
+    def _robot_lost(self, now: float, kind: str, detail: str) -> None:
+        """The robot's state or command failed: record the fault, then the driver's own stop."""
+        self.events.emit(now, "fault", fault=kind, detail=detail, s_deg=math.degrees(self.follower.state.s))
+        if self._phase not in (Phase.BRAKING, Phase.HALTED):
+            self.record.halt_reason = f"fault:{kind}"
+            self.record.s_allowed_at_brake = self._theta_allowed
+        self.events.emit(now, "brake", reason=f"fault:{kind}", s_deg=math.degrees(self.follower.state.s),
+                         theta_allowed_deg=math.degrees(self._theta_allowed), by="driver_stop")
+        try:
+            self.robot.stop()
+            st = self.robot.state()  # where the driver's stop left the arm: part of the executed trajectory
+            if not state_problem(st, self._q_min, self._q_max, None):
+                self.record.trajectory_t.append(float(st.t))
+                self.record.trajectory_s.append(self.follower.state.s)
+                self.record.trajectory_q.append(np.array(st.q, float))
+        except Exception as exc:  # noqa: BLE001 - nothing more to do: the robot's own reflexes still apply
+            self.events.emit(now, "fault", fault="driver_stop_failed", detail=f"{type(exc).__name__}: {exc}")
+        self._phase = Phase.HALTED
+        self.record.halt_s = self.follower.state.s
+        self.events.emit(now, "halted", s_deg=math.degrees(self.record.halt_s), reason=self.record.halt_reason)
+
+    def _read_state(self, now: float):
+        """The robot's state, checked; a failed read or an untrustworthy state loses the robot."""
+        try:
+            st = self.robot.state()
+        except Exception as exc:  # noqa: BLE001 - DriverError, vendor errors, anything: the state is unknown
+            raise _RobotLost("state_read", f"{type(exc).__name__}: {exc}") from exc
+        problem = state_problem(st, self._q_min, self._q_max, self._last_state_t)
+        if problem:
+            raise _RobotLost("bad_state", problem)
+        return st
+
     # -- the loop --------------------------------------------------------------------------
     def run(self, max_time: float = 600.0) -> RunRecord:
-        st = self.robot.state()
+        """Run the motion to a halt; every failure inside ends as a latched halt, never as an exception."""
+        now = self.clock.now()
+        try:
+            st = self._read_state(now)
+        except _RobotLost as lost:
+            self._robot_lost(now, *lost.args)
+            return self.record
         t_start = self.clock.now()
         self.history.add(st.t, st.q)
         self._last_state_t = st.t
@@ -353,61 +410,95 @@ class SupervisorLoop:
         if sampling == "stop_and_go":
             self._phase = Phase.CAPTURING  # the first samples are taken at the start pose
             self._frames_in_step = 0
+            self._rest_t = t_start
         else:
             self._target_s = self.s_end
-        while True:
+        self.pacer.start()
+        interrupted = 0
+        while self._phase is not Phase.HALTED:
             now = self.clock.now()
-            if now - t_start > max_time:
-                self._fault(now, "timeout", f"run exceeded {max_time} s")
-            st = self.robot.state()
-            if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
-                self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state")
-            if st.t > self._last_state_t:
-                self.history.add(st.t, st.q)
-            self._last_state_t = st.t
+            try:
+                if self._tick(now, t_start, max_time):
+                    break
+                if not self.pacer.wait():
+                    self._fault(self.clock.now(), "overrun",
+                                f"{self.pacer.budget} consecutive control ticks ran past their deadline "
+                                f"({self.pacer.period * 1000:.2f} ms period)")
+            except _RobotLost as lost:
+                self._robot_lost(now, *lost.args)
+            except KeyboardInterrupt:  # an interrupt is a stop request; a second one while braking is not waited for
+                interrupted += 1
+                if interrupted > 1:
+                    self._robot_lost(now, "interrupted", "interrupted again while braking")
+                else:
+                    self._fault(now, "interrupted", "KeyboardInterrupt")
+            except Exception as exc:  # noqa: BLE001 - whatever failed in the tick, the robot must stop
+                if self._phase is Phase.BRAKING:  # the brake itself failed: the driver's own stop
+                    self._robot_lost(now, "brake_failed", f"{type(exc).__name__}: {exc}")
+                else:
+                    self._fault(now, "internal", f"{type(exc).__name__}: {exc}")
+        return self.record
+
+    def _tick(self, now: float, t_start: float, max_time: float) -> bool:
+        """One control tick; True when the motion has ended."""
+        if self._stop_request is not None:
+            self._halt(now, f"stop:{self._stop_request}")
+        if now - t_start > max_time:
+            self._fault(now, "timeout", f"run exceeded {max_time} s")
+        st = self._read_state(now)
+        if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
+            self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state")
+        if st.t > self._last_state_t:
+            self.history.add(st.t, st.q)
+        self._last_state_t = st.t
+        try:
             self._collect(now)
             oldest = self.worker.oldest_pending()
-            if oldest is not None and now - oldest > self.stage.localization_timeout + 1e-9:
-                self._fault(now, "localization_timeout",
-                            f"frame captured at t={oldest:.4f} not localized after {(now - oldest) * 1000:.0f} ms")
+        except Exception as exc:  # noqa: BLE001 - a failed worker is a fault, the tick goes on braking
+            self._fault(now, "worker", f"{type(exc).__name__}: {exc}")
+            oldest = None
+        if oldest is not None and now - oldest > self.stage.localization_timeout + 1e-9:
+            self._fault(now, "localization_timeout",
+                        f"frame captured at t={oldest:.4f} not localized after {(now - oldest) * 1000:.0f} ms")
+        ps = self.follower.state
+        s = ps.s
+        at_rest = abs(ps.ds) < _REST_V and abs(ps.dds) < _REST_V
+
+        if self._phase is Phase.HALTED:
+            return True
+        if self._phase is Phase.BRAKING and at_rest:
+            self._phase = Phase.HALTED
+            self.record.halt_s = s
+            self.events.emit(now, "halted", s_deg=math.degrees(s), reason=self.record.halt_reason)
+            return True
+
+        if self.stage.sampling == "stop_and_go":
+            self._tick_stop_and_go(now, s, at_rest)
+        else:
+            self._tick_continuous(now, s, at_rest)
+
+        brake = self._phase is Phase.BRAKING
+        target = None if brake else (self._target_s if self._phase is Phase.MOVING else None)
+        if not brake and self._phase is Phase.MOVING:
             ps = self.follower.state
-            s = ps.s
-            at_rest = abs(ps.ds) < _REST_V and abs(ps.dds) < _REST_V
-
-            if self._phase is Phase.HALTED:
-                break
-            if self._phase is Phase.BRAKING and at_rest:
-                self._phase = Phase.HALTED
-                self.record.halt_s = s
-                self.events.emit(now, "halted", s_deg=math.degrees(s), reason=self.record.halt_reason)
-                break
-
-            if sampling == "stop_and_go":
-                self._tick_stop_and_go(now, s, at_rest)
-            else:
-                self._tick_continuous(now, s, at_rest)
-
-            brake = self._phase is Phase.BRAKING
-            target = None if brake else (self._target_s if self._phase is Phase.MOVING else None)
-            if not brake and self._phase is Phase.MOVING:
-                ps = self.follower.state
-                d = self.gate.update(ps, self._theta_allowed, next_state=self.follower.peek(target))
-                if d.brake:
-                    self._halt(now, f"gate:{d.reason}")
-                    brake, target = True, None
-            try:
-                q_cmd = self.follower.tick(target, brake)[3]
-            except MotionRejected as exc:
-                self._fault(now, "motion_rejected", str(exc))
-                q_cmd = self.robot.state().q  # hold: on hardware the robot's own reflexes take over
-                self._phase = Phase.HALTED
-                self.record.halt_s = self.follower.state.s
+            d = self.gate.update(ps, self._theta_allowed, next_state=self.follower.peek(target))
+            if d.brake:
+                self._halt(now, f"gate:{d.reason}")
+                brake, target = True, None
+        try:
+            q_cmd = self.follower.tick(target, brake)[3]
+        except MotionRejected as exc:
+            # The next command would break a limit: the follower cannot go on; the driver's own stop.
+            raise _RobotLost("motion_rejected", str(exc)) from exc
+        try:
             self.robot.command(q_cmd)
-            executed = self.robot.state()
-            self.record.trajectory_t.append(executed.t)
-            self.record.trajectory_s.append(self.follower.state.s)
-            self.record.trajectory_q.append(np.array(executed.q, float))
-        return self.record
+        except Exception as exc:  # noqa: BLE001 - RobotFault, DriverError, vendor errors
+            raise _RobotLost("command_rejected", f"{type(exc).__name__}: {exc}") from exc
+        executed = self._read_state(now)
+        self.record.trajectory_t.append(executed.t)
+        self.record.trajectory_s.append(self.follower.state.s)
+        self.record.trajectory_q.append(np.array(executed.q, float))
+        return False
 
     def _tick_stop_and_go(self, now: float, s: float, at_rest: bool) -> None:
         st = self.stage
@@ -415,9 +506,10 @@ class SupervisorLoop:
             self._phase = Phase.CAPTURING
             self._frames_in_step = 0
             self._next_frame_t = now
+            self._rest_t = now
         if self._phase is Phase.CAPTURING:
             if self._frames_in_step < st.frames_per_step and now >= self._next_frame_t:
-                if not self._grab(now):
+                if not self._grab(now, not_before=self._rest_t):
                     return
                 self._frames_in_step += 1
                 self._next_frame_t = now + self.frame_period
@@ -448,9 +540,11 @@ class SupervisorLoop:
         if self._phase is not Phase.MOVING:
             return
         if now >= self._next_frame_t and not at_rest:
-            if not self._grab(now):
+            got = self._grab(now)
+            if got is False:
                 return
-            self._next_frame_t = now + self.frame_period
+            if got:
+                self._next_frame_t = now + self.frame_period
         elif not at_rest and self._last_frame_t is not None and \
                 now - self._last_frame_t > 3 * self.frame_period + st.frame_timeout:
             self._fault(now, "frame_stall", f"no frame for {(now - self._last_frame_t) * 1000:.0f} ms")

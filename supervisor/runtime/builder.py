@@ -1,0 +1,292 @@
+"""The one front door: a config and its drivers become a running supervisor (STYLE 16).
+
+    drivers = open_drivers(cfg, realtime=True)          # robot, camera, kinematics, clock
+    sup = Supervisor(cfg, drivers, events)
+    sup.capture_model(T_base_cam0, roi)                 # or sup.use_model(model, T_base_cam0)
+    plan = sup.plan_arc(pivot_base, azimuth)            # checked before anything moves
+    record = sup.run(plan)                              # one gated motion, to a latched halt
+
+The dry-run, the replay and the daemon are thin callers of this module. On the
+real clock (`realtime`) the camera is read by a capture thread, localization runs
+on a thread pool and the loop is paced on `time.monotonic()`; in simulated time
+the same loop reads the camera inline, localizes inline (results released after
+their measured latency) and the robot's ticks advance the clock, so a dry-run is
+deterministic.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from supervisor.arm.kinematics import PandaKinematics
+from supervisor.clock import Clock, MonotonicClock, SimClock
+from supervisor.config import Config
+from supervisor.errors import CameraTimeout
+from supervisor.geometry import make_T
+from supervisor.localization.model import TargetModel, build_model
+from supervisor.motion.joint_move import move_camera_to
+from supervisor.motion.paths import ArcPath
+from supervisor.motion.plan import MotionRejected, PathCheck, PathFollower, check_path
+from supervisor.prediction import make_predictor
+from supervisor.runtime.capture import CaptureThread, InlineFrames
+from supervisor.runtime.events import EventLog
+from supervisor.runtime.loop import RunRecord, SupervisorLoop
+from supervisor.runtime.pacer import SimPacer, TickPacer
+from supervisor.runtime.protocols import CameraDriver, RobotDriver
+from supervisor.runtime.worker import InlineWorker, ProcessWorker, ThreadWorker
+from supervisor.stages import StageConfig
+
+
+@dataclass
+class Drivers:
+    """What the supervisor runs on: the arm, the camera, the arm's kinematics and the clock they share."""
+
+    robot: RobotDriver
+    camera: CameraDriver
+    kin: PandaKinematics
+    clock: Clock
+    realtime: bool
+
+    def close(self) -> None:
+        """Close the camera and the robot (each driver's `close` is idempotent)."""
+        try:
+            self.camera.close()
+        finally:
+            self.robot.close()
+
+
+def open_drivers(cfg: Config, *, realtime: bool = False, scene: str | None = None, seed: int = 0) -> Drivers:
+    """The configured robot and camera drivers (lazily imported from the registries), on one clock.
+
+    `realtime` selects the monotonic clock (the daemon, a real-time dry-run), otherwise simulated time.
+    `scene` and `seed` are for the sim camera (which scene it renders, its noise seed).
+    """
+    from drivers.camera import CAMERAS
+    from drivers.robot import ROBOTS
+
+    clock: Clock = MonotonicClock() if realtime else SimClock()
+    kin = PandaKinematics(T_flange_cam=cfg.camera.T_flange_cam, urdf=cfg.robot.urdf)
+    robot = ROBOTS.load(cfg.robot.driver).from_config(cfg, kin=kin, clock=clock)
+    try:
+        camera = CAMERAS.load(cfg.camera.driver).from_config(cfg, clock=clock, robot=robot, kin=kin, scene=scene,
+                                                             seed=seed)
+    except BaseException:
+        robot.close()
+        raise
+    return Drivers(robot, camera, kin, clock, realtime)
+
+
+SWITCH_INTERVAL = 2e-4  # s: how long a thread holding the GIL may keep a waiting tick thread out
+
+
+def realtime_thread_setup(priority: int = 20) -> dict[str, object]:
+    """Prepare the calling thread to run the control tick: a short GIL switch interval (the worker threads
+    hand the GIL back within 0.2 ms instead of 5 ms) and, where permitted (root or CAP_SYS_NICE), the
+    SCHED_FIFO real-time policy for this thread alone. Returns what was applied, for the event log."""
+    import os
+    import sys
+
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    out: dict[str, object] = {"switch_interval_ms": SWITCH_INTERVAL * 1e3, "sched_fifo": False}
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        out["sched_fifo"] = True
+        out["priority"] = priority
+    except (AttributeError, OSError) as exc:  # not Linux, or not permitted: the default policy
+        out["sched_note"] = str(exc)
+    return out
+
+
+@dataclass(frozen=True)
+class ArcPlan:
+    """An arc about `pivot` from the model view, checked over its whole length before moving."""
+
+    path: ArcPath
+    azimuth: float  # rad
+    s_end: float  # rad, where the motion ends (the reachable part when `check` failed and it was accepted)
+    check: PathCheck
+
+
+class Supervisor:
+    """A configured supervisor on its drivers: the model, the stage, planned and gated motions."""
+
+    def __init__(self, cfg: Config, drivers: Drivers, events: EventLog, *, stage: str | StageConfig | None = None,
+                 latency_scale: float = 1.0, workers: int = 2, worker: str | None = None) -> None:
+        """`worker`: where localization runs: "inline" (simulated time; the default there), "process"
+        (separate processes, the default on the real clock: no GIL shared with the tick) or "thread"."""
+        self.cfg = cfg
+        self.drivers = drivers
+        self.events = events
+        self.latency_scale = latency_scale
+        self.workers = workers
+        self.worker_kind = worker or ("process" if drivers.realtime else "inline")
+        if self.worker_kind not in ("inline", "process", "thread"):
+            raise ValueError(f"worker must be inline, process or thread, got {self.worker_kind!r}")
+        if self.worker_kind == "inline" and drivers.realtime:
+            raise ValueError("the inline worker computes inside the tick: not on the real clock")
+        self._process_worker: ProcessWorker | None = None
+        self._stage = stage if isinstance(stage, StageConfig) else cfg.stage(stage)
+        d = drivers
+        self.frames = CaptureThread(d.camera, d.clock, grab_timeout=cfg.camera.timeout_s) if d.realtime \
+            else InlineFrames(d.camera)
+        self.model: TargetModel | None = None
+        self.T_base_cam_model: np.ndarray | None = None
+        self.final_model: TargetModel | None = None  # the model the last run's worker ended with
+        self.last_pacer = None
+        self._loop: SupervisorLoop | None = None
+        self._lock = threading.Lock()
+
+    # -- configuration ---------------------------------------------------------------------
+    @property
+    def stage(self) -> StageConfig:
+        return self._stage
+
+    def set_stage(self, stage: str | StageConfig) -> StageConfig:
+        """Switch stage (the caller makes sure the robot is at rest: a motion runs under one stage)."""
+        self._stage = stage if isinstance(stage, StageConfig) else self.cfg.stage(stage)
+        return self._stage
+
+    def pacer(self, stage: StageConfig | None = None):
+        """The tick pacer for this clock: the robot's control period on the real clock."""
+        st = stage or self._stage
+        if self.drivers.realtime:
+            return TickPacer(self.drivers.clock, self.drivers.robot.control_period, st.overrun_budget)
+        return SimPacer()
+
+    # -- the target model -------------------------------------------------------------------
+    def camera_pose(self) -> np.ndarray:
+        """`T_base_cam` from the robot's reported flange pose and the hand-eye calibration."""
+        return self.drivers.robot.state().T_base_flange @ self.drivers.kin.T_flange_cam
+
+    def move_camera_to(self, T_base_cam: np.ndarray) -> None:
+        """A planned, checked joint move to rest with the camera at `T_base_cam` (setup motions)."""
+        move_camera_to(self.drivers.robot, self.drivers.kin, T_base_cam, self.pacer())
+
+    def frame_at_rest(self, timeout: float | None = None):
+        """One new frame exposed after now (the robot is at rest); CameraTimeout if none comes in time
+        (default: the camera timeout plus three frame periods, at least a second: setup is not timed)."""
+        clock = self.drivers.clock
+        if timeout is None:
+            timeout = max(1.0, self.cfg.camera.timeout_s + 3 * self.cfg.camera.frame_period_s)
+        t0 = clock.now()
+        while True:
+            frame = self.frames.take(clock.now(), timeout, not_before=t0)
+            if frame is not None:
+                return frame
+            if clock.now() - t0 > timeout:
+                raise CameraTimeout(timeout, "waiting for a frame at rest")
+            clock.sleep(0.002)
+
+    def capture_model(self, T_base_cam0: np.ndarray, roi, board=None) -> TargetModel:
+        """The model protocol: two images 2 cm apart along camera x (poses from the robot), triangulated;
+        the camera ends back at the first view, which becomes the arc's start."""
+        shots = []
+        baseline = make_T(np.eye(3), [self.cfg.dataset.model_baseline, 0.0, 0.0])
+        for T in (T_base_cam0, T_base_cam0 @ baseline):
+            self.move_camera_to(T)
+            frame = self.frame_at_rest()
+            shots.append((frame.image, self.camera_pose()))
+        (i0, T0), (i1, T1) = shots
+        model = build_model(i0, i1, T0, T1, self.drivers.camera.intrinsics, self.cfg.localization, roi, board=board)
+        self.move_camera_to(T0)
+        self.use_model(model, T0)
+        return model
+
+    def use_model(self, model: TargetModel, T_base_cam_model: np.ndarray) -> None:
+        """Set the target model and the camera pose it was built at (the viewing angle's origin)."""
+        self.model = model
+        self.T_base_cam_model = np.array(T_base_cam_model, float)
+
+    # -- motions --------------------------------------------------------------------------
+    def plan_arc(self, pivot_base: np.ndarray, azimuth: float, sweep: float | None = None, *,
+                 accept_reachable: bool = False) -> ArcPlan:
+        """The arc from the model view about `pivot_base`, checked whole before anything moves.
+
+        Ends at `sweep` (default: the stage's hard limit; never beyond it). A motion the arm cannot
+        complete raises MotionRejected (which joint, which limit, where, and the reachable part)
+        unless `accept_reachable`, which plans the reachable part instead.
+        """
+        if self.T_base_cam_model is None:
+            raise MotionRejected("no target model: build or load one first", 0.0)
+        if not math.isfinite(azimuth):
+            raise MotionRejected(f"azimuth is not finite ({azimuth})", 0.0)
+        st = self._stage
+        s_end = st.hard_limit if sweep is None else min(float(sweep), st.hard_limit)
+        path = ArcPath(self.T_base_cam_model, np.asarray(pivot_base, float), azimuth)
+        check = check_path(path, s_end, st.limits, self.drivers.kin, self.drivers.robot.state().q,
+                           margin=st.step)
+        if not check.ok:
+            p = check.problem
+            assert p is not None
+            where = f"joint {p.joint + 1} " if p.joint is not None else ""
+            text = (f"the arm cannot complete the arc to {math.degrees(s_end):.2f} deg: {where}{p.reason} "
+                    f"at {math.degrees(p.s):.2f} deg; reachable part: 0-{math.degrees(check.reachable):.2f} deg")
+            self.events.emit(self.drivers.clock.now(), "motion_refused" if not accept_reachable else
+                             "motion_shortened", detail=text, reachable_deg=math.degrees(check.reachable))
+            if not accept_reachable or check.reachable <= 0.0:
+                err = MotionRejected(text, p.s, p.joint)
+                err.reachable = check.reachable  # type: ignore[attr-defined]
+                raise err
+            s_end = check.reachable
+        return ArcPlan(path, float(azimuth), float(s_end), check)
+
+    def run(self, plan: ArcPlan, *, max_time: float = 600.0) -> RunRecord:
+        """One gated motion along `plan` under the current stage, to a latched halt."""
+        if self.model is None or self.T_base_cam_model is None:
+            raise MotionRejected("no target model: build or load one first", 0.0)
+        d, st, cfg = self.drivers, self._stage, self.cfg
+        worker = self._worker_for_run()
+        try:
+            follower = PathFollower(plan.path, st.limits, d.kin, d.robot.state().q, d.robot.control_period)
+            predictor = make_predictor(st.predictor, st.variant, st.n_t, st.step, hard_limit=st.hard_limit)
+            pacer = self.pacer(st)
+            loop = SupervisorLoop(robot=d.robot, frames=self.frames, worker=worker, predictor=predictor, stage=st,
+                                  follower=follower, kin=d.kin, T_base_cam_model=self.T_base_cam_model,
+                                  T_cam_target_model=self.model.T_cam0_target, clock=d.clock, events=self.events,
+                                  s_end=plan.s_end, frame_period=cfg.camera.frame_period_s,
+                                  reference_point=self.model.centroid, pacer=pacer)
+            with self._lock:
+                self._loop = loop
+            if d.realtime:
+                self.events.emit(d.clock.now(), "realtime", **realtime_thread_setup())
+            record = loop.run(max_time)
+            self.last_pacer = pacer
+        finally:
+            with self._lock:
+                self._loop = None
+            self.final_model = worker.model
+            if worker is not self._process_worker:
+                worker.close()
+        return record
+
+    def _worker_for_run(self):
+        """A localization worker for one run: the long-lived process pool, or a new inline/thread worker."""
+        d, cfg = self.drivers, self.cfg
+        if self.worker_kind == "process":
+            if self._process_worker is None:
+                self._process_worker = ProcessWorker(self.model, cfg.localization, d.clock, processes=self.workers)
+            self._process_worker.start_run(self.model)
+            return self._process_worker
+        if self.worker_kind == "thread":
+            return ThreadWorker(self.model, cfg.localization, d.clock, threads=self.workers)
+        return InlineWorker(self.model, cfg.localization, self.latency_scale)
+
+    def request_stop(self, reason: str = "stop") -> bool:
+        """Brake the running motion, latched (thread-safe); False when nothing is moving."""
+        with self._lock:
+            loop = self._loop
+        if loop is None:
+            return False
+        loop.request_stop(reason)
+        return True
+
+    def close(self) -> None:
+        """Stop the capture thread and the localization processes (the drivers belong to the caller)."""
+        self.frames.close()
+        if self._process_worker is not None:
+            self._process_worker.close()
+            self._process_worker = None
