@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -152,6 +153,71 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_daemon(args: argparse.Namespace) -> int:
+    """Run the supervisor daemon in the foreground (systemd Type=notify)."""
+    from supervisor.daemon.client import default_socket
+    from supervisor.daemon.server import ControlServer
+    from supervisor.daemon.service import Daemon
+
+    sock = Path(args.socket) if args.socket else default_socket()
+    log_dir = Path(args.log_dir) if args.log_dir else Path(os.environ.get("LOGS_DIRECTORY", "out/daemon"))
+    daemon = Daemon(args.config, log_dir=log_dir)
+    daemon.install_signals()
+    try:
+        server = ControlServer(sock, daemon.handle, group=args.group)
+    except BaseException:
+        daemon.close()
+        raise
+    print(f"supervisor daemon: config {daemon.cfg.file} ({daemon.cfg.sha256[:12]}), control socket {sock}, "
+          f"logs {log_dir}", flush=True)
+    try:
+        return daemon.serve()
+    finally:
+        server.close()
+
+
+def cmd_ctl(args: argparse.Namespace) -> int:
+    """Send one command to the daemon; print its JSON reply; 0 on success, 2 when refused."""
+    import json
+
+    from supervisor.daemon.client import default_socket, request
+
+    req: dict = {"cmd": args.ctl}
+    timeout = 30.0
+    if args.ctl == "run":
+        if args.motion:
+            from supervisor.dryrun import load_motion
+
+            m = load_motion(args.motion)
+            req["azimuth_deg"] = math.degrees(m["azimuth"])
+            if m["sweep"] is not None:
+                req["sweep_deg"] = math.degrees(m["sweep"])
+        else:
+            req["azimuth_deg"] = args.azimuth
+            if args.sweep is not None:
+                req["sweep_deg"] = args.sweep
+    elif args.ctl == "wait":
+        req["timeout"] = args.timeout
+        timeout = args.timeout + 5.0
+    elif args.ctl == "stage":
+        req["name"] = args.name
+    elif args.ctl == "reload":
+        if args.file:
+            req["file"] = str(Path(args.file).resolve())
+    elif args.ctl == "model":
+        req["action"] = args.action
+        if args.action == "load":
+            if not args.file:
+                raise SupervisorError("ctl model load needs FILE")
+            req["file"] = str(Path(args.file).resolve())
+        elif args.depth_mm:
+            req["depth_mm"] = args.depth_mm
+        timeout = 180.0
+    reply = request(Path(args.socket) if args.socket else default_socket(), req, timeout)
+    print(json.dumps(reply, indent=2, sort_keys=True))
+    return 0 if reply.get("ok") else EXIT_USAGE
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="supervisor", description=__doc__.splitlines()[0])
     p.add_argument("--config", default=None, help="configuration YAML (default: embedded config/default.yaml)")
@@ -217,6 +283,38 @@ def build_parser() -> argparse.ArgumentParser:
                     help="an arc the arm cannot complete runs its reachable part instead of being refused")
     dr.add_argument("-o", "--out", default="out/dry-run")
     dr.set_defaults(func=cmd_dry_run)
+
+    dm = sub.add_parser("daemon", help="run the supervisor daemon in the foreground (systemd Type=notify)")
+    dm.add_argument("--config", default=argparse.SUPPRESS, help="configuration YAML (as before the command)")
+    dm.add_argument("--socket", default=None, help="control socket (default: $RUNTIME_DIRECTORY/control.sock)")
+    dm.add_argument("--log-dir", default=None, help="event log directory (default: $LOGS_DIRECTORY or out/daemon)")
+    dm.add_argument("--group", default=None, help="group allowed on the control socket (mode 0660; default 0600)")
+    dm.set_defaults(func=cmd_daemon)
+
+    ct = sub.add_parser("ctl", help="send a command to the running daemon")
+    ct.add_argument("--socket", default=None, help="control socket (default: $RUNTIME_DIRECTORY/control.sock)")
+    cs = ct.add_subparsers(dest="ctl", required=True)
+    for name, text in (("status", "state, stage, faults, last run"), ("arm", "arm (idle -> armed)"),
+                       ("rearm", "after a halt: re-check and arm again"), ("stop", "brake now / disarm (always)"),
+                       ("shutdown", "brake, flush the logs and exit")):
+        cs.add_parser(name, help=text)
+    cr = cs.add_parser("run", help="run one gated arc")
+    g = cr.add_mutually_exclusive_group(required=True)
+    g.add_argument("--azimuth", type=float, help="arc direction [deg]")
+    g.add_argument("--motion", default=None, metavar="FILE", help="motion YAML (kind: arc, azimuth_deg, sweep_deg)")
+    cr.add_argument("--sweep", type=float, default=None, help="end of the arc [deg] (default: the stage's hard limit)")
+    cw = cs.add_parser("wait", help="wait for the current run to end and print its summary")
+    cw.add_argument("--timeout", type=float, default=600.0)
+    cg = cs.add_parser("stage", help="switch stage (only at rest)")
+    cg.add_argument("name")
+    cl = cs.add_parser("reload", help="reload the config (only idle; keeps the last good one on any error)")
+    cl.add_argument("file", nargs="?", default=None)
+    cm = cs.add_parser("model", help="build the target model (two images 2 cm apart) or load one")
+    cm.add_argument("action", choices=["build", "load"])
+    cm.add_argument("file", nargs="?", default=None)
+    cm.add_argument("--depth-mm", type=float, nargs=2, default=None, metavar=("NEAR", "FAR"),
+                    help="the target's depth range (cameras without a known start view)")
+    ct.set_defaults(func=cmd_ctl)
 
     de = sub.add_parser("demo", help="quick dataset + localization table (the default main job)")
     de.add_argument("-o", "--out", default="out/demo")

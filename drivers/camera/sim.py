@@ -46,6 +46,22 @@ class SimCamera(Camera):
         return cls(renderer, lambda: robot.state().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
                    noise_seed=seed)
 
+    @property
+    def pivot_base(self) -> np.ndarray:
+        """The scene's pivot (the arc's centre) in the robot base frame."""
+        scene = self.renderer.scene
+        return (scene.T_base_scene @ np.append(scene.pivot, 1.0))[:3]
+
+    def start_view(self):
+        """(T_base_cam at the scene's start view, the target's box as the model ROI, the fiducial board)."""
+        from supervisor.localization.model import BoxROI
+        from supervisor.motion.paths import start_camera_pose
+
+        scene = self.renderer.scene
+        T0 = start_camera_pose(self.pivot_base, scene.view.radius, scene.view.elevation, scene.view.heading)
+        box, half = scene.target_box_in_target()
+        return T0, BoxROI(box, half), scene.board
+
     def _close(self) -> None:
         close = getattr(self.renderer, "close", None)  # a RenderProcess owns a child process
         if close is not None:

@@ -200,6 +200,10 @@ class Supervisor:
         """Set the target model and the camera pose it was built at (the viewing angle's origin)."""
         self.model = model
         self.T_base_cam_model = np.array(T_base_cam_model, float)
+        if self.worker_kind == "process" and self._process_worker is None:
+            # start the localization processes now: a new interpreter takes seconds to import OpenCV
+            self._process_worker = ProcessWorker(model, self.cfg.localization, self.drivers.clock,
+                                                 processes=self.workers)
 
     # -- motions --------------------------------------------------------------------------
     def plan_arc(self, pivot_base: np.ndarray, azimuth: float, sweep: float | None = None, *,
@@ -234,8 +238,9 @@ class Supervisor:
             s_end = check.reachable
         return ArcPlan(path, float(azimuth), float(s_end), check)
 
-    def run(self, plan: ArcPlan, *, max_time: float = 600.0) -> RunRecord:
-        """One gated motion along `plan` under the current stage, to a latched halt."""
+    def run(self, plan: ArcPlan, *, max_time: float = 600.0, heartbeat=None) -> RunRecord:
+        """One gated motion along `plan` under the current stage, to a latched halt. `heartbeat(now)` is
+        called from every tick whose robot state was fresh (the daemon's watchdog, the CAN heartbeat)."""
         if self.model is None or self.T_base_cam_model is None:
             raise MotionRejected("no target model: build or load one first", 0.0)
         d, st, cfg = self.drivers, self._stage, self.cfg
@@ -248,7 +253,7 @@ class Supervisor:
                                   follower=follower, kin=d.kin, T_base_cam_model=self.T_base_cam_model,
                                   T_cam_target_model=self.model.T_cam0_target, clock=d.clock, events=self.events,
                                   s_end=plan.s_end, frame_period=cfg.camera.frame_period_s,
-                                  reference_point=self.model.centroid, pacer=pacer)
+                                  reference_point=self.model.centroid, pacer=pacer, heartbeat=heartbeat)
             with self._lock:
                 self._loop = loop
             if d.realtime:

@@ -112,6 +112,12 @@ class CaptureThread:
             raise CameraTimeout(timeout, f"no new frame for {waited * 1000:.0f} ms")
         return None
 
+    def newest_age(self, now: float) -> float | None:
+        """Seconds since the newest complete frame was exposed (None: no frame yet)."""
+        with self._lock:
+            frame = self._newest
+        return None if frame is None else now - frame.t
+
     def close(self, timeout: float = 1.0) -> None:
         """Stop the thread (a grab in progress ends within the grab timeout). Idempotent."""
         self._stop.set()

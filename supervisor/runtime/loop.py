@@ -140,8 +140,12 @@ class SupervisorLoop:
     def __init__(self, *, robot: RobotDriver, frames: FrameSource, worker: LocalizationWorker, predictor,
                  stage: StageConfig, follower: PathFollower, kin: Kinematics, T_base_cam_model: np.ndarray,
                  T_cam_target_model: np.ndarray, clock: Clock, events: EventLog, s_end: float,
-                 frame_period: float, reference_point: np.ndarray | None = None, pacer=None) -> None:
+                 frame_period: float, reference_point: np.ndarray | None = None, pacer=None,
+                 heartbeat=None) -> None:
         self.robot = robot
+        # Called with the clock time from every tick whose robot state was fresh and trusted: the daemon's
+        # systemd watchdog and the CAN heartbeat hang on it, so a hung or failing loop stops them.
+        self.heartbeat = heartbeat
         self.frames = frames
         self.worker = worker
         self.pacer = pacer if pacer is not None else SimPacer()
@@ -410,7 +414,7 @@ class SupervisorLoop:
         if sampling == "stop_and_go":
             self._phase = Phase.CAPTURING  # the first samples are taken at the start pose
             self._frames_in_step = 0
-            self._rest_t = t_start
+            self._rest_t = None  # at rest since before the run: any new frame was exposed at rest
         else:
             self._target_s = self.s_end
         self.pacer.start()
@@ -448,9 +452,12 @@ class SupervisorLoop:
         st = self._read_state(now)
         if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
             self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state")
+        fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9
         if st.t > self._last_state_t:
             self.history.add(st.t, st.q)
         self._last_state_t = st.t
+        if fresh and self.heartbeat is not None and self._phase is not Phase.HALTED:
+            self.heartbeat(now)
         try:
             self._collect(now)
             oldest = self.worker.oldest_pending()

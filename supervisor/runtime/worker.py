@@ -281,7 +281,7 @@ class ThreadWorker:
 
 
 def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str, slot_bytes: int,
-                  tasks, results) -> None:
+                  tasks, results, index: int) -> None:
     """A localization process: frames arrive as shared-memory slots, results go back pickled."""
     import cv2
     from multiprocessing import shared_memory
@@ -290,6 +290,7 @@ def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str
     shm = shared_memory.SharedMemory(name=shm_name)
     try:
         localizer = Localizer(model, settings)
+        results.put(("ready", index, None, None))
         while True:
             msg = tasks.get()
             if msg is None:
@@ -320,7 +321,8 @@ class ProcessWorker:
     """
 
     def __init__(self, model: TargetModel, settings: LocalizerSettings, clock: Clock, *, processes: int = 2,
-                 max_pending: int | None = None, max_image_bytes: int | None = None) -> None:
+                 max_pending: int | None = None, max_image_bytes: int | None = None,
+                 start_timeout: float = 60.0) -> None:
         import multiprocessing as mp
         from multiprocessing import shared_memory
 
@@ -336,10 +338,11 @@ class ProcessWorker:
         self._results = ctx.Queue()
         self._queues = [ctx.Queue() for _ in range(processes)]
         self._procs = [ctx.Process(target=_process_main, name=f"localize-{i}", daemon=True,
-                                   args=(settings, model, self._shm.name, self.slot_bytes, q, self._results))
+                                   args=(settings, model, self._shm.name, self.slot_bytes, q, self._results, i))
                        for i, q in enumerate(self._queues)]
         for p in self._procs:
             p.start()
+        self._await_ready(start_timeout)
         self._lock = threading.Lock()
         self._free = list(range(self.max_pending))
         self._jobs: dict[int, tuple[FrameJob, int]] = {}  # key -> (job, process index)
@@ -358,6 +361,22 @@ class ProcessWorker:
         self._refine_lock = threading.Lock()  # observations vs. a refit in progress
         self._collector = threading.Thread(target=self._collect, name="localize-results", daemon=True)
         self._collector.start()
+
+    def _await_ready(self, timeout: float) -> None:
+        """Block until every process has imported its libraries and built its localizer (a few seconds)."""
+        import queue as _queue
+
+        ready = 0
+        deadline = time.monotonic() + timeout
+        while ready < len(self._procs):
+            try:
+                msg = self._results.get(timeout=max(0.01, deadline - time.monotonic()))
+            except _queue.Empty:
+                self._shutdown()
+                raise WorkerError(f"localization processes not ready after {timeout:.0f} s "
+                                  f"({ready}/{len(self._procs)})") from None
+            if msg[0] == "ready":
+                ready += 1
 
     @property
     def model(self) -> TargetModel:
@@ -481,6 +500,14 @@ class ProcessWorker:
         """Stop the processes and release the shared memory. Idempotent."""
         if self._closed:
             return
+        self._shutdown(timeout)
+        try:
+            self._results.put(None)
+        except (OSError, ValueError):
+            pass
+        self._collector.join(0.5)
+
+    def _shutdown(self, timeout: float = 2.0) -> None:
         self._closed = True
         for q in self._queues:
             try:
@@ -493,10 +520,5 @@ class ProcessWorker:
             if p.is_alive():
                 p.terminate()
                 p.join(0.5)
-        try:
-            self._results.put(None)
-        except (OSError, ValueError):
-            pass
-        self._collector.join(0.5)
         self._shm.close()
         self._shm.unlink()

@@ -1,0 +1,396 @@
+"""The supervisor daemon: the builder's supervisor on the real clock, driven through a control socket.
+
+States (latched halts; nothing restarts motion by itself):
+
+    idle --arm--> armed --run--> moving --(any halt)--> halted --rearm--> armed
+      ^             |                                     |
+      +----stop-----+                          (a fault: rearm re-checks first)
+
+The main thread owns the supervisor: it runs the motions (the control loop ticks here) and, at
+rest, an idle loop that checks the robot state and the camera are fresh before each systemd
+watchdog ping. Requests arrive on the control socket's threads; `status`, `stop` and `wait` are
+answered there at once (`stop` is always accepted), everything else is queued to the main thread,
+which refuses what the current state does not allow. SIGTERM/SIGINT brake a moving arm, then the
+daemon flushes its logs and exits 0; SIGHUP reloads the config when idle.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import os
+import queue
+import signal
+import threading
+import time
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from supervisor.config import Config, load_config
+from supervisor.daemon.notify import Notifier
+from supervisor.errors import ConfigError, SupervisorError
+from supervisor.localization.artifacts import viewing_angle
+from supervisor.localization.model import DepthROI, TargetModel
+from supervisor.runtime.builder import Supervisor, open_drivers
+from supervisor.runtime.events import EventLog
+from supervisor.runtime.loop import RunRecord, overshoot
+
+IDLE_PERIOD = 0.02  # s: the idle loop's period (freshness checks, watchdog, queued requests)
+STATE_MAX_AGE = 0.1  # s: a robot state older than this at rest is not fresh
+REQUEST_TIMEOUT = 120.0  # s: how long a queued request may take (a model build moves the arm)
+
+
+class State(enum.Enum):
+    IDLE = "idle"
+    ARMED = "armed"
+    MOVING = "moving"
+    HALTED = "halted"
+
+
+class Refused(SupervisorError):
+    """A request the daemon will not carry out now (the reply says why; the daemon carries on)."""
+
+
+class Daemon:
+    """One supervisor on its drivers, its state machine, and the requests that drive it."""
+
+    def __init__(self, config: str | Path | None, *, log_dir: str | Path, notifier: Notifier | None = None,
+                 realtime: bool = True) -> None:
+        self.config_path = None if config is None else Path(config)
+        self.cfg: Config = load_config(self.config_path)
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.notifier = notifier or Notifier()
+        self.events = EventLog(self.log_dir / "events.jsonl")
+        self.drivers = open_drivers(self.cfg, realtime=realtime)
+        self.sup = Supervisor(self.cfg, self.drivers, self.events)
+        self.state = State.IDLE
+        self.fault: str | None = None
+        self.last_summary: dict[str, Any] | None = None
+        self.runs = 0
+        self._requests: queue.Queue[tuple[str, dict[str, Any], Future]] = queue.Queue()
+        self._shutdown = threading.Event()
+        self._changed = threading.Condition()
+        self._lock = threading.Lock()
+        self._hung = threading.Event()  # tests: make the idle loop hang (the watchdog must stop)
+        self._pending_run = False
+        self._next_plan = None
+        self._log("config", sha256=self.cfg.sha256, file=str(self.cfg.file), stage=self.sup.stage.name)
+
+    # -- small helpers ----------------------------------------------------------------------
+    def _now(self) -> float:
+        return self.drivers.clock.now()
+
+    def _log(self, kind: str, **fields: Any) -> None:
+        self.events.emit(self._now(), kind, **fields)
+
+    def _set_state(self, state: State, why: str = "") -> None:
+        with self._changed:
+            old, self.state = self.state, state
+            self._changed.notify_all()
+        if old is not state:
+            self._log("state", state=state.value, previous=old.value, why=why)
+        self.notifier.status(self.status_line())
+
+    def status_line(self) -> str:
+        fault = f", fault {self.fault}" if self.fault else ""
+        return f"{self.state.value}, stage {self.sup.stage.name}{fault}"
+
+    # -- checks -----------------------------------------------------------------------------
+    def fresh(self) -> list[str]:
+        """What is not fresh right now: the robot state and the camera's newest frame."""
+        problems = []
+        now = self._now()
+        try:
+            st = self.drivers.robot.state()
+            if now - st.t > STATE_MAX_AGE:
+                problems.append(f"robot state is {1000 * (now - st.t):.0f} ms old")
+        except Exception as exc:  # noqa: BLE001 - a failing driver is a problem to report
+            problems.append(f"robot state: {type(exc).__name__}: {exc}")
+        age = self.sup.frames.newest_age(now) if hasattr(self.sup.frames, "newest_age") else None
+        limit = max(1.0, self.cfg.camera.timeout_s + 3 * self.cfg.camera.frame_period_s)
+        if age is None:
+            problems.append("the camera has delivered no frame")
+        elif age > limit:
+            problems.append(f"the camera's newest frame is {age:.1f} s old")
+        return problems
+
+    def self_check(self, timeout: float = 30.0) -> list[str]:
+        """Before READY=1 and before arming: fresh robot state, frames coming, a model or a way to one."""
+        t_end = time.monotonic() + timeout
+        problems = self.fresh()
+        while problems and time.monotonic() < t_end:  # the camera's first frame may take a moment
+            time.sleep(0.05)
+            problems = self.fresh()
+        if self.sup.model is None and not hasattr(self.drivers.camera, "start_view"):
+            problems.append("no target model loaded (model load FILE), and this camera cannot capture one "
+                            "without a configured start view and region of interest")
+        return problems
+
+    # -- requests -----------------------------------------------------------------------------
+    def handle(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Answer one request (from a control-socket thread). Never raises."""
+        cmd = request.get("cmd")
+        try:
+            if cmd == "status":
+                return {"ok": True, **self.status()}
+            if cmd == "stop":
+                return {"ok": True, **self.stop("operator")}
+            if cmd == "wait":
+                return self.wait(float(request.get("timeout", 600.0)))
+            if cmd in ("debug-hang", "debug-resume") and os.environ.get("SUPERVISOR_DEBUG_COMMANDS") == "1":
+                # Fault injection for tests only (off unless the environment enables it): hang the idle loop.
+                (self._hung.set if cmd == "debug-hang" else self._hung.clear)()
+                return {"ok": True, "hung": self._hung.is_set()}
+            if cmd == "shutdown":
+                self.request_shutdown("shutdown request")
+                return {"ok": True, "state": self.state.value, "shutting_down": True}
+            if cmd in ("arm", "rearm", "run", "stage", "reload", "model"):
+                if self.state is State.MOVING:
+                    raise Refused(f"{cmd} refused while moving (stop first)")
+                fut: Future = Future()
+                self._requests.put((cmd, request, fut))
+                return fut.result(timeout=REQUEST_TIMEOUT)
+            raise Refused(f"unknown command {cmd!r}")
+        except Refused as exc:
+            return {"ok": False, "error": str(exc), "state": self.state.value}
+        except Exception as exc:  # noqa: BLE001 - a request must never take the daemon down
+            return {"ok": False, "error": f"{type(exc).__name__}: {exc}", "state": self.state.value}
+
+    def status(self) -> dict[str, Any]:
+        pacer = self.sup.last_pacer
+        return {"state": self.state.value, "stage": self.sup.stage.name, "fault": self.fault,
+                "model": None if self.sup.model is None else {"features": self.sup.model.n_features,
+                                                              "frame": self.sup.model.frame},
+                "config_sha256": self.cfg.sha256, "config": str(self.cfg.file), "runs": self.runs,
+                "last_run": self.last_summary, "alarms": [a for a in (self.events.alarm,) if a],
+                "camera": vars(self.sup.frames.stats).copy(),
+                "ticks": None if pacer is None else pacer.stats.summary()}
+
+    def stop(self, reason: str) -> dict[str, Any]:
+        """Always accepted: a moving arm brakes (latched halt); an armed supervisor is disarmed."""
+        self._log("stop_request", reason=reason, state=self.state.value)
+        if self.sup.request_stop(reason):
+            return {"state": "moving", "braking": True}
+        with self._lock:
+            if self.state is State.ARMED:
+                self._set_state(State.IDLE, "stop")
+        return {"state": self.state.value, "braking": False}
+
+    def wait(self, timeout: float) -> dict[str, Any]:
+        """Block until no run is pending or moving, then the last run's summary."""
+        t_end = time.monotonic() + timeout
+        with self._changed:
+            while (self.state is State.MOVING or self._pending_run) and time.monotonic() < t_end:
+                self._changed.wait(min(0.1, max(0.0, t_end - time.monotonic())))
+        if self.state is State.MOVING:
+            return {"ok": False, "error": f"still moving after {timeout:.1f} s", "state": self.state.value}
+        if self.last_summary is None:
+            return {"ok": False, "error": "no run has ended yet", "state": self.state.value}
+        return {"ok": True, "state": self.state.value, "summary": self.last_summary}
+
+    def _do(self, cmd: str, req: dict[str, Any]) -> dict[str, Any]:
+        """A queued request, on the main thread."""
+        if cmd == "arm":
+            if self.state is not State.IDLE:
+                raise Refused(f"arm needs the idle state (now {self.state.value}; after a halt: rearm)")
+            return self._arm("arm")
+        if cmd == "rearm":
+            if self.state is not State.HALTED:
+                raise Refused(f"rearm needs a halted supervisor (now {self.state.value})")
+            return self._arm("rearm")
+        if cmd == "stage":
+            name = req.get("name")
+            if not isinstance(name, str):
+                raise Refused("stage needs a name")
+            try:
+                st = self.sup.set_stage(name)
+            except ConfigError as exc:
+                raise Refused(str(exc)) from None
+            self._log("stage", stage=st.name, sha256=self.cfg.sha256)
+            self.notifier.status(self.status_line())
+            return {"ok": True, "stage": st.name, "config_sha256": self.cfg.sha256}
+        if cmd == "reload":
+            return self._reload(req.get("file"))
+        if cmd == "model":
+            return self._model(req)
+        if cmd == "run":
+            return self._run_request(req)
+        raise Refused(f"unknown command {cmd!r}")
+
+    def _arm(self, how: str) -> dict[str, Any]:
+        if self.sup.model is None:
+            raise Refused(f"{how} needs a target model (model build, or model load FILE)")
+        problems = self.self_check(timeout=2.0)
+        if problems:
+            raise Refused(f"{how} refused: " + "; ".join(problems))
+        self.fault = None
+        self._set_state(State.ARMED, how)
+        return {"ok": True, "state": self.state.value}
+
+    def _reload(self, file: str | None) -> dict[str, Any]:
+        if self.state is not State.IDLE:
+            raise Refused(f"reload only when idle (now {self.state.value})")
+        path = Path(file) if file else self.config_path
+        try:
+            new = load_config(path)
+        except SupervisorError as exc:
+            self._log("reload_refused", file=str(path), error=str(exc))
+            raise Refused(f"reload refused, the last good config stays: {exc}") from None
+        same_drivers = (new.robot.driver == self.cfg.robot.driver and new.camera.driver == self.cfg.camera.driver
+                        and new.camera.intrinsics == self.cfg.camera.intrinsics
+                        and np.array_equal(new.camera.T_flange_cam, self.cfg.camera.T_flange_cam)
+                        and new.robot.control_period_s == self.cfg.robot.control_period_s)
+        if not same_drivers:
+            raise Refused("reload refused, the last good config stays: the new config changes the robot or "
+                          "camera section (drivers are opened once: restart the daemon for that)")
+        stage = self.sup.stage.name if self.sup.stage.name in new.stages else new.default_stage
+        self.cfg = new
+        self.sup.cfg = new
+        self.sup.set_stage(stage)
+        if path is not None:
+            self.config_path = path
+        self._log("config", sha256=new.sha256, file=str(new.file), stage=stage, reload=True)
+        self.notifier.status(self.status_line())
+        return {"ok": True, "config_sha256": new.sha256, "stage": stage}
+
+    def _model(self, req: dict[str, Any]) -> dict[str, Any]:
+        action = req.get("action")
+        if self.state not in (State.IDLE, State.HALTED):
+            raise Refused(f"model {action} needs the arm at rest and disarmed (now {self.state.value})")
+        if action == "load":
+            file = req.get("file")
+            if not isinstance(file, str):
+                raise Refused("model load needs a file")
+            model = TargetModel.load(file)
+            self.sup.use_model(model, model.T_base_cam0)
+        elif action == "build":
+            view = getattr(self.drivers.camera, "start_view", None)
+            if view is None:
+                T0 = self.sup.camera_pose()
+                depth = req.get("depth_mm")
+                if not (isinstance(depth, list) and len(depth) == 2):
+                    raise Refused("model build on this camera needs depth_mm: [near, far], the target's "
+                                  "depth range in front of the camera")
+                roi, board = DepthROI(float(depth[0]) / 1000, float(depth[1]) / 1000), None
+            else:
+                T0, roi, board = view()
+            model = self.sup.capture_model(T0, roi, board)
+        else:
+            raise Refused("model needs action build or load")
+        self._log("model", action=action, features=model.n_features, frame=model.frame)
+        return {"ok": True, "features": model.n_features, "frame": model.frame}
+
+    def _run_request(self, req: dict[str, Any]) -> dict[str, Any]:
+        if self.state is not State.ARMED:
+            raise Refused(f"run needs an armed supervisor (now {self.state.value})")
+        az = req.get("azimuth_deg")
+        sweep = req.get("sweep_deg")
+        if not isinstance(az, (int, float)) or isinstance(az, bool) or not math.isfinite(az) or not 0 <= az <= 360:
+            raise Refused(f"run: azimuth_deg must be a finite number in [0, 360], got {az!r}")
+        if sweep is not None and (not isinstance(sweep, (int, float)) or isinstance(sweep, bool)
+                                  or not math.isfinite(sweep) or not 0 < sweep <= 180):
+            raise Refused(f"run: sweep_deg must be a finite number in (0, 180], got {sweep!r}")
+        pivot = getattr(self.drivers.camera, "pivot_base", None)
+        if pivot is None:
+            pivot = (self.sup.model.T_base_target @ np.append(self.sup.model.centroid, 1.0))[:3]
+        plan = self.sup.plan_arc(pivot, math.radians(az), None if sweep is None else math.radians(sweep))
+        self._next_plan = plan
+        self._pending_run = True
+        return {"ok": True, "state": "moving", "theta_end_deg": math.degrees(plan.s_end)}
+
+    # -- the main thread -------------------------------------------------------------------------
+    def request_shutdown(self, why: str) -> None:
+        self._log("shutdown_request", why=why)
+        self._shutdown.set()
+        self.sup.request_stop(why)
+
+    def serve(self) -> int:
+        """Self-check, READY=1, then supervise until shutdown. Returns the exit status."""
+        problems = self.self_check()
+        if problems:
+            self._log("self_check_failed", problems=problems)
+            self.close()
+            raise Refused("self-check failed: " + "; ".join(problems))
+        self._log("ready", stage=self.sup.stage.name, sha256=self.cfg.sha256)
+        self.notifier.send(READY=1, STATUS=self.status_line())
+        while not self._shutdown.is_set():
+            self._idle_tick()
+            if self._pending_run and not self._shutdown.is_set():
+                self._execute_run()
+        self.notifier.send(STOPPING=1, STATUS="stopping")
+        self._log("stopping")
+        self.close()
+        return 0
+
+    def _idle_tick(self) -> None:
+        t0 = time.monotonic()
+        while self._hung.is_set() and not self._shutdown.is_set():  # tests: a hung loop
+            time.sleep(0.01)
+        if not self.fresh():
+            self.notifier.watchdog(self._now())
+        try:
+            cmd, req, fut = self._requests.get(timeout=max(0.0, IDLE_PERIOD - (time.monotonic() - t0)))
+        except queue.Empty:
+            return
+        try:
+            fut.set_result(self._do(cmd, req))
+        except Refused as exc:
+            fut.set_result({"ok": False, "error": str(exc), "state": self.state.value})
+        except Exception as exc:  # noqa: BLE001
+            fut.set_result({"ok": False, "error": f"{type(exc).__name__}: {exc}", "state": self.state.value})
+
+    def _execute_run(self) -> None:
+        plan, self._next_plan = self._next_plan, None
+        self._set_state(State.MOVING, "run")
+        self.runs += 1
+        with self._changed:
+            self._pending_run = False
+            self._changed.notify_all()
+
+        def heartbeat(now: float) -> None:
+            if not self._hung.is_set():
+                self.notifier.watchdog(now)
+
+        record = self.sup.run(plan, heartbeat=heartbeat)
+        self.last_summary = self._summary(record)
+        if record.halt_reason.startswith("fault:"):
+            self.fault = record.halt_reason[len("fault:"):]
+        self._log("run_ended", **self.last_summary)
+        self._set_state(State.HALTED, record.halt_reason)
+
+    def _summary(self, record: RunRecord) -> dict[str, Any]:
+        kin, T0 = self.drivers.kin, self.sup.T_base_cam_model
+        executed = np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
+        over, _ = overshoot(np.asarray(record.trajectory_t), executed, record.allowance_history)
+        allowed = record.s_allowed_at_brake
+        return {"halt_angle_deg": math.degrees(record.halt_s), "halt_reason": record.halt_reason,
+                "theta_allowed_deg": math.degrees(allowed) if math.isfinite(allowed) else None,
+                "max_executed_angle_deg": math.degrees(float(executed.max())) if len(executed) else 0.0,
+                "max_overshoot_deg": math.degrees(over) if math.isfinite(over) else None,
+                "stage": self.sup.stage.name, "config_sha256": self.cfg.sha256}
+
+    def install_signals(self) -> None:
+        """SIGTERM/SIGINT: brake, flush, exit 0; SIGHUP: reload when idle (queued like a request)."""
+        def terminate(signum, frame) -> None:  # noqa: ARG001
+            self.request_shutdown(signal.Signals(signum).name)
+
+        def hangup(signum, frame) -> None:  # noqa: ARG001
+            self._requests.put(("reload", {}, Future()))
+
+        signal.signal(signal.SIGTERM, terminate)
+        signal.signal(signal.SIGINT, terminate)
+        signal.signal(signal.SIGHUP, hangup)
+
+    def close(self) -> None:
+        try:
+            self.sup.close()
+        finally:
+            try:
+                self.drivers.close()
+            finally:
+                self.events.close()
+                self.notifier.close()

@@ -1,0 +1,235 @@
+"""The daemon as its users run it: a subprocess on the default config (sim robot, sim camera, real clock),
+a NOTIFY_SOCKET listener standing in for systemd, and `supervisor ctl` over the control socket."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from supervisor.daemon.client import request
+
+SUPERVISOR = str(Path(sys.executable).with_name("supervisor"))
+START_TIMEOUT = 180.0  # s: drivers, render process, capture thread (a loaded machine is slow)
+
+
+class Notify:
+    """A systemd stand-in: the datagram socket a Type=notify service reports to."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.2)
+        self.messages: list[tuple[float, dict[str, str]]] = []
+
+    def pump(self, seconds: float = 0.0) -> None:
+        t_end = time.monotonic() + seconds
+        while True:
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                if time.monotonic() >= t_end:
+                    return
+                continue
+            fields = dict(line.split("=", 1) for line in data.decode().splitlines() if "=" in line)
+            self.messages.append((time.monotonic(), fields))
+            if time.monotonic() >= t_end:
+                return
+
+    def wait_for(self, key: str, value: str | None = None, timeout: float = START_TIMEOUT) -> bool:
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            if any(key in m and (value is None or m[key] == value) for _, m in self.messages):
+                return True
+            self.pump(0.2)
+        return False
+
+    def count(self, key: str, since: float = 0.0) -> int:
+        return sum(1 for t, m in self.messages if key in m and t >= since)
+
+
+class DaemonProc:
+    def __init__(self, tmp: Path, extra_env: dict[str, str] | None = None) -> None:
+        self.tmp = tmp
+        self.sock = tmp / "run" / "control.sock"
+        self.logs = tmp / "logs"
+        self.notify = Notify(tmp / "notify.sock")
+        env = {**os.environ, "NOTIFY_SOCKET": str(tmp / "notify.sock"), "WATCHDOG_USEC": "1000000",
+               **(extra_env or {})}
+        self.out = open(tmp / "daemon.out", "w")  # noqa: SIM115
+        self.proc = subprocess.Popen([SUPERVISOR, "daemon", "--socket", str(self.sock), "--log-dir", str(self.logs)],
+                                     env=env, stdout=self.out, stderr=subprocess.STDOUT)
+
+    def ctl(self, *args: str, timeout: float = 200.0) -> tuple[int, dict]:
+        r = subprocess.run([SUPERVISOR, "ctl", "--socket", str(self.sock), *args], capture_output=True, text=True,
+                           timeout=timeout)
+        return r.returncode, json.loads(r.stdout) if r.stdout.strip().startswith("{") else {"stderr": r.stderr}
+
+    def req(self, obj: dict, timeout: float = 30.0) -> dict:
+        return request(self.sock, obj, timeout)
+
+    def wait_state(self, state: str, timeout: float = 60.0) -> bool:
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            if self.req({"cmd": "status"})["state"] == state:
+                return True
+            time.sleep(0.05)
+        return False
+
+    def events(self) -> list[dict]:
+        return [json.loads(x) for x in (self.logs / "events.jsonl").read_text().splitlines()]
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self.out.close()
+        self.notify.sock.close()
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    d = DaemonProc(tmp_path_factory.mktemp("daemon"), {"SUPERVISOR_DEBUG_COMMANDS": "1"})
+    try:
+        assert d.notify.wait_for("READY", "1"), (d.tmp / "daemon.out").read_text()
+        yield d
+    finally:
+        d.stop()
+
+
+@pytest.mark.slow
+def test_ready_socket_mode_and_requests_that_never_disturb_it(daemon):
+    mode = stat.S_IMODE(os.stat(daemon.sock).st_mode)
+    assert stat.S_ISSOCK(os.stat(daemon.sock).st_mode) and mode == 0o600
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.connect(str(daemon.sock))
+        f = s.makefile("rwb")
+        for bad in (b"not json\n", b"[1, 2]\n", b'{"cmd": "fly"}\n', b'{"nocmd": 1}\n'):
+            f.write(bad)
+            f.flush()
+            reply = json.loads(f.readline())
+            assert reply["ok"] is False and reply["error"], bad
+        f.write(b'{"cmd": "status"}\n')
+        f.flush()
+        assert json.loads(f.readline())["state"] == "idle"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:  # oversized: this client is cut off, nobody else
+        s.connect(str(daemon.sock))
+        s.sendall(b'{"cmd": "status", "pad": "' + b"x" * 70000)
+        assert b"longer than" in s.recv(4096)
+    assert daemon.req({"cmd": "status"})["state"] == "idle"
+    rc, reply = daemon.ctl("arm")  # no model yet
+    assert rc == 2 and "target model" in reply["error"]
+
+
+@pytest.mark.slow
+def test_reload_of_a_bad_file_keeps_the_last_good_config(daemon, tmp_path):
+    before = daemon.req({"cmd": "status"})["config_sha256"]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("robot: {driver: sim\n")
+    rc, reply = daemon.ctl("reload", str(bad))
+    assert rc == 2 and "last good config stays" in reply["error"]
+    assert daemon.req({"cmd": "status"})["config_sha256"] == before
+
+
+@pytest.mark.slow
+def test_build_arm_run_wait_halts_within_the_allowance_and_stage_is_refused_while_moving(daemon):
+    rc, reply = daemon.ctl("model", "build")
+    assert rc == 0 and reply["features"] > 100, reply
+    rc, reply = daemon.ctl("arm")
+    assert rc == 0 and reply["state"] == "armed", reply
+    rc, reply = daemon.ctl("run", "--azimuth", "90", "--sweep", "6")
+    assert rc == 0, reply
+    assert daemon.wait_state("moving", 10) or daemon.req({"cmd": "status"})["state"] == "halted"
+    rc, refused = daemon.ctl("stage", "cut")
+    st = daemon.req({"cmd": "status"})["state"]
+    assert st == "halted" or (rc == 2 and "while moving" in refused["error"]), (rc, refused)
+    rc, done = daemon.ctl("wait", "--timeout", "120")
+    assert rc == 0, done
+    s = done["summary"]
+    assert set(s) >= {"halt_angle_deg", "halt_reason", "theta_allowed_deg", "max_overshoot_deg", "stage",
+                      "config_sha256"}
+    assert s["max_overshoot_deg"] <= 1e-6  # never past the allowance in force, on the executed trajectory
+    if not s["halt_reason"].startswith("fault:"):
+        assert s["halt_angle_deg"] <= s["theta_allowed_deg"] + 1e-6
+        assert s["halt_angle_deg"] == pytest.approx(6.0, abs=1e-6) or s["halt_reason"] == "boundary"
+    assert daemon.req({"cmd": "status"})["state"] == "halted"
+    rc, reply = daemon.ctl("run", "--azimuth", "90")
+    assert rc == 2 and "armed" in reply.get("error", ""), reply  # latched: nothing restarts motion by itself
+
+
+@pytest.mark.slow
+def test_stop_mid_motion_brakes_at_once(daemon):
+    st = daemon.req({"cmd": "status"})
+    if st["model"] is None:
+        assert daemon.ctl("model", "build")[0] == 0
+    if st["state"] == "halted":
+        assert daemon.ctl("rearm")[0] == 0
+    elif st["state"] == "idle":
+        assert daemon.ctl("arm")[0] == 0
+    assert daemon.ctl("stage", "explore_continuous")[0] == 0  # moves continuously: easy to catch moving
+    assert daemon.ctl("run", "--azimuth", "90")[0] == 0
+    assert daemon.wait_state("moving", 20)
+    time.sleep(1.0)
+    rc, reply = daemon.ctl("stop")
+    assert rc == 0 and reply["braking"] is True
+    rc, done = daemon.ctl("wait", "--timeout", "60")
+    assert rc == 0
+    s = done["summary"]
+    assert s["halt_reason"] in ("stop:operator",) or s["halt_reason"].startswith("fault:"), s
+    assert s["max_overshoot_deg"] <= 1e-6
+    brake = [e for e in daemon.events() if e["kind"] == "brake"][-1]
+    stop = [e for e in daemon.events() if e["kind"] == "stop_request"][-1]
+    assert brake["t"] - stop["t"] < 0.05  # braking began within a few ticks of the request
+
+
+@pytest.mark.slow
+def test_watchdog_comes_from_the_loop_and_stops_when_it_hangs(daemon):
+    t0 = time.monotonic()
+    daemon.notify.pump(2.0)
+    assert daemon.notify.count("WATCHDOG", t0) >= 3  # every half of WATCHDOG_USEC=1 s
+    assert daemon.req({"cmd": "debug-hang"})["ok"]
+    t1 = time.monotonic() + 0.3
+    daemon.notify.pump(2.0)
+    assert daemon.notify.count("WATCHDOG", t1) == 0
+    assert daemon.req({"cmd": "status"})["ok"]  # the socket still answers: only the loop hangs
+    assert daemon.req({"cmd": "debug-resume"})["ok"]
+    t2 = time.monotonic()
+    daemon.notify.pump(1.5)
+    assert daemon.notify.count("WATCHDOG", t2) >= 1
+
+
+@pytest.mark.slow
+def test_sigterm_mid_motion_brakes_flushes_and_exits_0(tmp_path):
+    d = DaemonProc(tmp_path)
+    try:
+        assert d.notify.wait_for("READY", "1"), (tmp_path / "daemon.out").read_text()
+        assert d.ctl("model", "build")[0] == 0
+        assert d.ctl("stage", "explore_continuous")[0] == 0
+        assert d.ctl("arm")[0] == 0
+        assert d.ctl("run", "--azimuth", "90")[0] == 0
+        assert d.wait_state("moving", 20)
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        d.proc.send_signal(signal.SIGTERM)
+        rc = d.proc.wait(10)
+        assert rc == 0 and time.monotonic() - t0 < 2.0
+        kinds = [e["kind"] for e in d.events()]
+        assert "halted" in kinds and kinds[-1] == "stopping"  # braked, then flushed to the last line
+        brake = [e for e in d.events() if e["kind"] == "brake"][-1]
+        assert brake["reason"] == "stop:SIGTERM"
+        assert d.notify.wait_for("STOPPING", "1", 2.0)
+    finally:
+        d.stop()

@@ -1,0 +1,218 @@
+"""The runtime's parts on the real clock: capture thread, localization workers, event log, whole-arc checks."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from dataset_fixture import write_arc_dataset
+from drivers.camera.base import Camera, RawFrame
+from loop_fakes import DEG, Q_START, T_FLANGE_CAM, MisbehavingCamera, PlainCamera
+from supervisor.arm.kinematics import PandaKinematics
+from supervisor.clock import MonotonicClock
+from supervisor.config import load_config
+from supervisor.dataset.format import Dataset
+from supervisor.errors import CameraTimeout
+from supervisor.localization.localizer import Localizer, predict_target_pose
+from supervisor.localization.offline import model_from_dataset
+from supervisor.motion.braking import PathLimits
+from supervisor.motion.paths import ArcPath
+from supervisor.motion.plan import check_path
+from supervisor.runtime.capture import CaptureThread
+from supervisor.runtime.events import EventLog
+from supervisor.runtime.worker import FrameJob, ProcessWorker, ThreadWorker
+
+
+# -- capture thread -------------------------------------------------------------------------
+def _wait(pred, timeout=3.0):
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if pred():
+            return True
+        time.sleep(0.002)
+    return False
+
+
+def test_capture_thread_hands_over_the_newest_frame_and_counts_drops():
+    clock = MonotonicClock()
+    cap = CaptureThread(PlainCamera(clock, frame_period=0.005), clock)
+    try:
+        assert _wait(lambda: cap.stats.frames >= 10)
+        f1 = cap.take(clock.now(), 0.2)
+        assert f1 is not None and cap.stats.dropped >= 8  # nine older frames were replaced before anyone took them
+        assert cap.take(clock.now(), 0.2) is None or cap.stats.taken == 2  # never the same frame twice
+        later = clock.now()
+        assert _wait(lambda: (f := cap.take(clock.now(), 0.2, not_before=later)) is not None and f.t >= later)
+    finally:
+        cap.close()
+
+
+class _Stalling(Camera):
+    """Delivers `n` frames, then its grab blocks (a stalled stream) until closed."""
+
+    def __init__(self, clock, n: int) -> None:
+        super().__init__(PlainCamera(clock).intrinsics, clock)
+        self.inner, self.n, self.k = PlainCamera(clock, 0.005), n, 0
+        self.release = threading.Event()
+
+    def _grab(self, timeout: float) -> RawFrame:
+        self.k += 1
+        if self.k > self.n:
+            self.release.wait(timeout)
+            raise CameraTimeout(timeout, "stalled")
+        return self.inner._grab(timeout)
+
+
+def test_capture_thread_stall_raises_camera_timeout_and_a_device_error_reaches_the_loop():
+    clock = MonotonicClock()
+    cap = CaptureThread(MisbehavingCamera(PlainCamera(clock, 0.005), OSError(19, "No such device"), after=3), clock)
+    try:
+        assert _wait(lambda: cap.stats.errors > 0)
+        with pytest.raises(OSError, match="No such device"):
+            cap.take(clock.now(), 0.2)
+    finally:
+        cap.close()
+    stall = _Stalling(clock, 2)
+    cap = CaptureThread(stall, clock, grab_timeout=5.0)
+    try:
+        assert _wait(lambda: cap.stats.frames == 2)
+        assert cap.take(clock.now(), 0.05) is not None
+        t0 = clock.now()
+        assert cap.take(t0, 0.05) is None  # waiting starts
+        with pytest.raises(CameraTimeout):
+            cap.take(t0 + 0.06, 0.05)
+    finally:
+        stall.release.set()
+        cap.close()
+
+
+# -- localization workers -------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    root = write_arc_dataset(tmp_path_factory.mktemp("rec") / "arc", angles_deg=(0.0, 4.0), images_per_position=2)
+    cfg = load_config(None)
+    ds = Dataset.open(root)
+    return cfg, ds, model_from_dataset(ds, cfg.localization)
+
+
+def _jobs(ds, model):
+    out = []
+    for i, rec in enumerate(ds.frames):
+        T = rec.T_base_cam(ds.T_flange_cam)
+        hint = predict_target_pose(T, ds.model_images[0].T_base_cam(ds.T_flange_cam), model.T_cam0_target)
+        out.append((FrameJob(float(i), i + 1, ds.load_image(rec), T, rec.position, {}), hint))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["thread", "process"])
+def test_workers_off_the_tick_give_the_inline_results(recording, kind):
+    cfg, ds, model = recording
+    clock = MonotonicClock()
+    jobs = _jobs(ds, model)
+    ref = Localizer(model, cfg.localization)
+    expect = {j.seq: ref.localize(j.image, h) for j, h in jobs}
+    worker = (ThreadWorker(model, cfg.localization, clock, threads=2) if kind == "thread"
+              else ProcessWorker(model, cfg.localization, clock, processes=2))
+    try:
+        got = {}
+        for j, h in jobs:
+            assert _wait(lambda: worker.submit(j, h), 20.0)  # the queue is bounded: retry until taken
+            for r in worker.poll(clock.now()):
+                got[r.job.seq] = r.result
+        assert _wait(lambda: (got.update({r.job.seq: r.result for r in worker.poll(clock.now())}) or
+                              len(got) == len(jobs)), 30.0)
+        assert not worker.busy and worker.oldest_pending() is None
+        for seq, res in got.items():
+            assert res.status is expect[seq].status
+            assert abs(res.n_inliers - expect[seq].n_inliers) <= max(3, 0.1 * expect[seq].n_inliers)
+    finally:
+        worker.close()
+
+
+def test_process_worker_queue_is_bounded_and_drops_are_counted(recording):
+    cfg, ds, model = recording
+    clock = MonotonicClock()
+    worker = ProcessWorker(model, cfg.localization, clock, processes=1, max_pending=1)
+    try:
+        (j1, h1), (j2, h2), (j3, h3) = _jobs(ds, model)[:3]
+        assert worker.submit(j1, h1)
+        assert not worker.submit(j2, h2) and not worker.submit(j3, h3)
+        assert worker.dropped == 2
+        assert _wait(lambda: bool(worker.poll(clock.now())), 30.0)
+    finally:
+        worker.close()
+
+
+@pytest.mark.parametrize("kind", ["thread", "process"])
+def test_workers_refine_the_model_and_later_frames_use_it(recording, kind):
+    import dataclasses
+
+    cfg, ds, model = recording
+    loc = dataclasses.replace(cfg.localization, model=dataclasses.replace(cfg.localization.model,
+                                                                          refine_positions=1,
+                                                                          refine_continuous=False))
+    clock = MonotonicClock()
+    worker = (ThreadWorker(model, loc, clock, threads=2) if kind == "thread"
+              else ProcessWorker(model, loc, clock, processes=2))
+    try:
+        jobs = _jobs(ds, model)
+        first = [jh for jh in jobs if jh[0].step == 0]
+        for j, h in first:
+            assert worker.submit(j, h)
+        assert _wait(lambda: (worker.poll(clock.now()), not worker.busy)[1], 30.0)
+        worker.refine(clock.now(), 0)
+        assert _wait(lambda: bool(notes := worker.take_notes()) and notes[0]["step"] == 0, 30.0)
+        assert worker.model is not model  # swapped
+        worker.refine(clock.now(), 1)  # not continuous: no second refit
+        time.sleep(0.2)
+        assert worker.take_notes() == []
+    finally:
+        worker.close()
+
+
+# -- event log ------------------------------------------------------------------------------
+def test_event_log_writes_every_line_on_its_thread(tmp_path):
+    p = tmp_path / "events.jsonl"
+    log = EventLog(p)
+    for k in range(500):
+        log.emit(k * 1e-3, "tick", k=k, x=np.float64(0.5), bad=math.nan)
+    assert log.flush(5.0)
+    lines = p.read_text().splitlines()
+    assert len(lines) == 500 and json.loads(lines[-1]) == {"t": 0.499, "kind": "tick", "k": 499, "x": 0.5,
+                                                            "bad": None}
+    log.close()
+    log.close()  # idempotent
+    assert log.dropped == 0 and log.alarm is None
+
+
+def test_event_log_on_a_full_disk_alarms_and_never_raises():
+    log = EventLog("/dev/full")
+    for k in range(50):
+        log.emit(float(k), "tick", k=k)  # must not raise
+    log.flush(5.0)
+    log.close()
+    assert log.dropped == 50 and "No space left on device" in log.alarm
+    assert len(log.events) == 50  # the in-memory record is complete
+
+
+# -- plan before moving -----------------------------------------------------------------------
+def test_whole_arc_check_names_the_joint_the_limit_and_the_reachable_part():
+    kin = PandaKinematics(T_flange_cam=T_FLANGE_CAM)
+    T0 = kin.fk(Q_START, "camera")
+    arc = ArcPath(T0, T0[:3, 3] + 0.35 * T0[:3, 2], 0.0)
+    limits = PathLimits(10 * DEG, 20 * DEG, 200 * DEG)
+    ok = check_path(arc, 20 * DEG, limits, kin, Q_START)
+    assert ok.ok and ok.reachable == pytest.approx(20 * DEG)
+    far = check_path(arc, 170 * DEG, limits, kin, Q_START)
+    assert not far.ok
+    p = far.problem
+    assert 0 < p.s < 170 * DEG and 0 < far.reachable < p.s
+    assert ("limit" in p.reason and p.joint is not None) or "unreachable" in p.reason
+    fast = check_path(arc, 20 * DEG, PathLimits(400 * DEG, 2000 * DEG, 20000 * DEG), kin, Q_START)
+    assert not fast.ok and "velocity" in fast.problem.reason and fast.problem.joint is not None
+    assert fast.problem.s <= 2 * DEG  # at once: every joint speed scales with the path speed
