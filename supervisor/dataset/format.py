@@ -22,9 +22,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
-import shutil
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +32,7 @@ import numpy as np
 
 from supervisor.camera_model import Intrinsics
 from supervisor.errors import DatasetError
+from supervisor.outputs import StagedOutput
 
 FORMAT_NAME = "panda-supervisor-dataset"
 FORMAT_VERSION = 1
@@ -47,6 +45,8 @@ FRAME_COLUMNS = (
     + [f"T_base_flange_{m}" for m in _MAT]
     + [f"T_cam_target_true_{m}" for m in _MAT]
 )
+DATASET_COMMAND = "dataset generate"
+DATASET_FILES = (METADATA_FILE, FRAMES_FILE, "model", "frames", "model.npz")  # what a dataset directory holds
 REQUIRED_METADATA = ("format", "format_version", "kind", "intrinsics", "T_flange_cam", "model_images", "motion")
 
 
@@ -266,12 +266,13 @@ class DatasetWriter:
     """Writes a dataset into a temporary directory and renames it into place on `finish()`."""
 
     def __init__(self, root: str | Path, overwrite: bool = False) -> None:
-        self.root = Path(root)
-        if self.root.exists() and not overwrite:
-            raise DatasetError(self.root, "output already exists (choose another path or remove it)")
-        self.root.parent.mkdir(parents=True, exist_ok=True)
+        # Checked here, before any frame is rendered: a bad location, or with `overwrite` an existing
+        # directory holding anything but an earlier dataset, fails now (supervisor.outputs).
+        self._staged = StagedOutput(root, DATASET_COMMAND, replace=overwrite, known=DATASET_FILES,
+                                    exists_hint="choose another path, or --force to replace a dataset")
+        self.root = self._staged.final
         self.overwrite = overwrite
-        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.partial-", dir=self.root.parent))
+        self._tmp = self._staged.path
         (self._tmp / "model").mkdir()
         (self._tmp / "frames").mkdir()
         self._frames: list[FrameRecord] = []
@@ -313,19 +314,13 @@ class DatasetWriter:
                 "frames_file": FRAMES_FILE, "n_frames": len(self._frames),
                 "n_positions": len({f.position for f in self._frames})}
         (self._tmp / METADATA_FILE).write_text(json.dumps(full, indent=1), encoding="utf-8")
-        old = None
-        if self.root.exists():
-            old = self.root.with_name(f".{self.root.name}.old-{os.getpid()}")
-            os.replace(self.root, old)
-        os.replace(self._tmp, self.root)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        self._staged.commit()
         self._done = True
         return self.root
 
     def abort(self) -> None:
         if not self._done:
-            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._staged.abort()
             self._done = True
 
     def __enter__(self) -> DatasetWriter:
