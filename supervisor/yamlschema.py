@@ -391,6 +391,14 @@ class Node:
         value = self._get(key, default)
         return _check_number(value, self.error, key, min, max, min_exclusive)
 
+    def optional_number(self, key: str, *, min: float | None = None, max: float | None = None,
+                        min_exclusive: bool = False) -> float | None:
+        """Like `number`, but an absent key (or null) is None."""
+        if self.data.get(key) is None:
+            self._seen.add(key)
+            return None
+        return self.number(key, min=min, max=max, min_exclusive=min_exclusive)
+
     def integer(self, key: str, default: Any = _MISSING, *, min: int | None = None, max: int | None = None) -> int:
         value = self._get(key, default)
         if isinstance(value, Ambiguous):
