@@ -244,8 +244,9 @@ def _describe_yaml_error(exc: yaml.YAMLError) -> str:
 
 def load_yaml_text(text: str, file: str | Path | None = None) -> Any:
     """Parse YAML text (see the module docstring); errors name the file, never quote its content."""
-    loader = _StrictLoader(text)
+    loader = None
     try:
+        loader = _StrictLoader(text)  # the reader checks for unprintable characters here
         node = loader.get_single_node()
         if node is None:
             return None
@@ -256,7 +257,8 @@ def load_yaml_text(text: str, file: str | Path | None = None) -> Any:
     except RecursionError as exc:  # belt and braces: MAX_DEPTH keeps every walk shallow
         raise ConfigError(file, "", "invalid YAML: nested too deeply") from exc
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def read_bounded(path: str | Path, limit: int = MAX_BYTES, what: str = "file") -> bytes:
