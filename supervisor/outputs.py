@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import shutil
 import sys
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -109,6 +109,19 @@ def record_file(directory: Path, name: str) -> None:
         _write_marker(directory, info["command"], [*info["files"], name])
 
 
+def _fresh_sibling(final: Path, kind: str) -> Path:
+    """A new empty directory `.NAME.KIND-XXXXXXXX` beside `final`, with the umask's mode (mkdtemp's
+    0700 would become the output's mode after the rename)."""
+    for _ in range(100):
+        candidate = final.parent / f".{final.name}.{kind}-{secrets.token_hex(4)}"
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            continue
+    raise OutputError(final, f"cannot create a {kind} directory beside it")
+
+
 class StagedOutput:
     """A directory output, checked on construction, built in `path`, moved to `final` on `commit()`.
 
@@ -120,7 +133,7 @@ class StagedOutput:
         self.known = tuple(known)
         self.final = check_target(final, command, replace=replace, known=self.known, exists_hint=exists_hint)
         self.final.parent.mkdir(parents=True, exist_ok=True)
-        self.path = Path(tempfile.mkdtemp(prefix=f".{self.final.name}.partial-", dir=self.final.parent))
+        self.path = _fresh_sibling(self.final, "partial")
         self._done = False
 
     def commit(self) -> Path:
@@ -131,7 +144,7 @@ class StagedOutput:
         trash = None
         if os.path.lexists(self.final):
             check_replaceable(self.final, self.command, self.known)  # again: files may have appeared since
-            trash = Path(tempfile.mkdtemp(prefix=f".{self.final.name}.replaced-", dir=self.final.parent))
+            trash = _fresh_sibling(self.final, "replaced")
             os.replace(self.final, trash / "old")
         try:
             os.replace(self.path, self.final)

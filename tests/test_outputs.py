@@ -242,3 +242,16 @@ def test_huge_line_offset_is_a_clear_error(tmp_path, capfd):
     rc, _, err = run(["dataset", "generate", tmp_path / "o", "--motion", "line", "--offset", "1e300"], capfd)
     one_error(rc, err, "offset: must be a finite angle within +-90 deg")
     assert listing(tmp_path) == []
+
+
+def test_output_directory_gets_the_umask_mode_not_0700(tmp_path):
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        with StagedOutput(tmp_path / "run", "dry-run") as s:
+            (s.path / "a").write_text("1")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "run").stat().st_mode) == 0o755
