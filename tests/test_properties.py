@@ -20,7 +20,7 @@ from supervisor.errors import ConfigError, DatasetError
 from supervisor.yamlschema import Ambiguous, Node, load_yaml, load_yaml_text
 from test_dataset_format import _write
 
-PROPS = settings(max_examples=150, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture,
+PROPS = settings(max_examples=100, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                         HealthCheck.too_slow])
 
 # Scalars chosen to hit YAML's corners: 1.1-vs-1.2 readings, non-finite numbers, huge numbers.
@@ -47,6 +47,7 @@ yaml_doc = st.dictionaries(st.sampled_from(["kind", "azimuth_deg", "sweep_deg", 
                            _yaml_value(), max_size=5).map(lambda d: "".join(f"{k}: {v}\n" for k, v in d.items()))
 yaml_noise = st.text(st.sampled_from(list(":-[]{},&*!#|>'\"\n ?.0123456789aeflnosty~%@`\t")), max_size=80)
 
+any_text = st.one_of(yaml_doc, yaml_noise, st.binary(max_size=200).map(lambda b: b.decode("latin-1")))
 
 def _check_node_values(data) -> None:
     """Every typed getter either refuses a value or returns a finite, typed one."""
@@ -102,18 +103,18 @@ def test_yaml_reader_arbitrary_yaml(text):
 
 
 @PROPS
-@given(st.one_of(yaml_doc, yaml_noise, st.binary(max_size=200).map(lambda b: b.decode("latin-1"))))
+@given(any_text)
 def test_config_reader_arbitrary_yaml(tmp_path, text):
     from supervisor.config import load_config
 
     f = tmp_path / "cfg.yaml"
-    f.write_text(text, encoding="utf-8")
+    f.write_text(text, encoding="utf-8")  # never a valid config: every required key is missing
     with pytest.raises(ConfigError):
         load_config(f)
 
 
 @PROPS
-@given(st.one_of(yaml_doc, yaml_noise, st.binary(max_size=200).map(lambda b: b.decode("latin-1"))))
+@given(any_text)
 def test_motion_reader(tmp_path, text):
     from supervisor.dryrun import load_motion
 
@@ -171,6 +172,17 @@ def _assert_sane(ds: Dataset) -> None:
         assert ds.root.resolve() in ds.path_of(rec).parents
 
 
+def _open_edited(base: Path, tmp_path: Path, name: str, text: str) -> None:
+    """A copy of the base dataset with `name` replaced by `text`: refused, or sane if accepted."""
+    root = _fresh(base, tmp_path / "ds")
+    (root / name).write_text(text)
+    try:
+        ds = Dataset.open(root)
+    except DatasetError:
+        return
+    _assert_sane(ds)
+
+
 @PROPS
 @given(data=st.data())
 def test_dataset_reader_arbitrary_metadata_values(base, tmp_path, data):
@@ -186,13 +198,7 @@ def test_dataset_reader_arbitrary_metadata_values(base, tmp_path, data):
             target[path[-1]] = data.draw(json_value)
         except (KeyError, IndexError, TypeError):
             continue
-    root = _fresh(base, tmp_path / "ds")
-    (root / METADATA_FILE).write_text(json.dumps(edited))
-    try:
-        ds = Dataset.open(root)
-    except DatasetError:
-        return
-    _assert_sane(ds)
+    _open_edited(base, tmp_path, METADATA_FILE, json.dumps(edited))
 
 
 @PROPS
@@ -206,13 +212,7 @@ def test_dataset_reader_arbitrary_frame_cells(base, tmp_path, data):
     cells[col] = data.draw(st.one_of(st.sampled_from(["nan", "inf", "-inf", "1e999", "", "../x.png", "/etc/passwd",
                                                       "2", "-1", "0.5"]), st.text(max_size=8)))
     lines[row] = ",".join(cells)
-    root = _fresh(base, tmp_path / "ds")
-    (root / FRAMES_FILE).write_text("\n".join(lines) + "\n")
-    try:
-        ds = Dataset.open(root)
-    except DatasetError:
-        return
-    _assert_sane(ds)
+    _open_edited(base, tmp_path, FRAMES_FILE, "\n".join(lines) + "\n")
 
 
 @PROPS
