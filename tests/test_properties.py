@@ -131,12 +131,14 @@ def test_motion_reader(tmp_path, text):
 
 # ---------------------------------------------------------------------------- the dataset reader
 
+def _json_containers(children: st.SearchStrategy) -> st.SearchStrategy:
+    return st.one_of(st.lists(children, max_size=5), st.dictionaries(st.text(max_size=5), children, max_size=4))
+
+
 json_value = st.recursive(
     st.one_of(st.none(), st.booleans(), st.integers(-10 ** 20, 10 ** 20), st.floats(allow_nan=True),
               st.text(max_size=10), st.sampled_from(["../x.png", "/etc/passwd", "a\x00b", "model/model_0.png"])),
-    lambda children: st.one_of(st.lists(children, max_size=5), st.dictionaries(st.text(max_size=5), children,
-                                                                             max_size=4)),
-    max_leaves=10)
+    _json_containers, max_leaves=10)
 
 
 @pytest.fixture(scope="module")
