@@ -17,6 +17,8 @@ import dataclasses
 import json
 import math
 import multiprocessing
+import os
+import re
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -39,6 +41,27 @@ def _trial(args: tuple[str, float, str, str, str, str | None]) -> dict:
     return run_dry_run(cfg, spec, Path(out), progress=lambda m: None)
 
 
+def trial_labels(scenes: list[str]) -> dict[str, str]:
+    """A directory-name label per scene: a shipped name as is, a scene file by its stem (numbered
+    when two files share a stem), never a path, so trial outputs stay under -o OUT."""
+    labels: dict[str, str] = {}
+    for sc in scenes:
+        stem = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(sc).stem if sc.endswith((".yaml", ".yml")) or "/" in sc else sc)
+        label, k = stem.strip(".") or "scene", 2
+        while label in labels.values():
+            label, k = f"{stem}_{k}", k + 1
+        labels[sc] = label
+    return labels
+
+
+def trial_dir(out: Path, name: str) -> Path:
+    """OUT/name, refusing anything that would land outside OUT."""
+    path = out / name
+    if Path(name).is_absolute() or os.path.dirname(name) or out.resolve() not in path.resolve().parents:
+        raise SystemExit(f"error: trial output {name!r} would be written outside {out}")
+    return path
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-o", "--out", default="out/trials")
@@ -50,7 +73,9 @@ def main() -> int:
     ap.add_argument("--modes", default="stop_and_go,continuous")
     a = ap.parse_args()
     out = Path(a.out)
-    trials = [(sc, float(az), mode, a.stage, str(out / f"{sc}_az{int(float(az)):03d}_{mode}"), a.config)
+    labels = trial_labels(a.scenes.split(","))
+    trials = [(sc, float(az), mode, a.stage, str(trial_dir(out, f"{labels[sc]}_az{int(float(az)):03d}_{mode}")),
+               a.config)
               for sc in a.scenes.split(",") for az in a.azimuths.split(",") for mode in a.modes.split(",")]
     print(f"{len(trials)} trials, stage {a.stage}", file=sys.stderr)
     rows = []

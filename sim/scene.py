@@ -32,7 +32,7 @@ from supervisor.errors import ConfigError
 from supervisor.geometry import inv_T, make_T, rpy_to_R, transform_from_config
 from supervisor.localization.fiducial import BoardSpec
 from supervisor.paths import SCENES_DIR
-from supervisor.yamlschema import Node, load_yaml
+from supervisor.yamlschema import Node, decode_text, load_yaml_text, read_bounded
 
 _BOX_MARGIN_M = 0.004  # target box margin around the object's faces
 _BOX_FLOOR_M = 0.0015  # the target box stops this far above the table (keeps ground points out)
@@ -168,10 +168,9 @@ def load_scene(name_or_path: str | Path) -> Scene:
         if not path.is_file():
             raise ConfigError(SCENES_DIR, "scene",
                               f"unknown scene {s!r}; available in {SCENES_DIR}: {', '.join(list_scenes())}")
-    if not path.is_file():
-        raise ConfigError(path, "", "scene file not found")
-    raw = path.read_bytes()
-    return _parse(Node(load_yaml(path), path), path.stem, hashlib.sha256(raw).hexdigest(), path)
+    raw = read_bounded(path, what="scene file")
+    root = Node(load_yaml_text(decode_text(raw, path), path), path)
+    return _parse(root, path.stem, hashlib.sha256(raw).hexdigest(), path)
 
 
 def _parse(root: Node, name: str, sha: str, source: Path) -> Scene:

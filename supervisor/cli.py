@@ -24,9 +24,24 @@ def _config(args: argparse.Namespace):
     return load_config(args.config)
 
 
+def _finite(text: str) -> float:
+    """argparse type: a finite number (nan/inf are refused naming the flag)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
 def cmd_dataset_generate(args: argparse.Namespace) -> int:
     from sim.scene import load_scene
+    from supervisor.dataset.format import DATASET_COMMAND, DATASET_FILES
+    from supervisor.outputs import check_target
 
+    check_target(args.out, DATASET_COMMAND, replace=args.force, known=DATASET_FILES,
+                 exists_hint="choose another path, or --force to replace a dataset")
     cfg = _config(args)
     scene = load_scene(args.scene or cfg.scene)  # an unknown scene fails here, before any robot code loads
     from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
@@ -54,13 +69,23 @@ def cmd_benchmark_generate(args: argparse.Namespace) -> int:
 
 def cmd_model_build(args: argparse.Namespace) -> int:
     from supervisor.dataset.format import Dataset
+    from supervisor.errors import ModelFormatError, OutputError
+    from supervisor.localization.model import TargetModel
     from supervisor.localization.offline import model_from_dataset
+    from supervisor.outputs import check_location, record_file
 
+    out = check_location(args.output or Path(args.dataset) / "model.npz", directory=False)
+    if out.exists():
+        try:
+            TargetModel.load(out)
+        except ModelFormatError:
+            raise OutputError(out, "exists and is not a target model; it is never overwritten") from None
     cfg = _config(args)
     ds = Dataset.open(args.dataset)
     model = model_from_dataset(ds, cfg.localization)
-    out = Path(args.output) if args.output else ds.root / "model.npz"
     model.save(out)
+    if not args.output:
+        record_file(out.parent, out.name)
     print(f"wrote target model {out}: {len(model.points_target)} features, frame={model.frame}")
     return 0
 
@@ -68,12 +93,18 @@ def cmd_model_build(args: argparse.Namespace) -> int:
 def cmd_localize(args: argparse.Namespace) -> int:
     from supervisor.dataset.format import Dataset
     from supervisor.localization.model import TargetModel
+    from supervisor.outputs import StagedOutput
 
-    cfg = _config(args)
-    ds = Dataset.open(args.dataset)
-    model = TargetModel.load(args.model) if args.model else None
-    _localize_and_report(ds, model, cfg, Path(args.out), roi=args.roi)
+    with StagedOutput(args.out, "localize", known=LOCALIZE_FILES) as staged:
+        cfg = _config(args)
+        ds = Dataset.open(args.dataset)
+        model = TargetModel.load(args.model) if args.model else None
+        _localize_and_report(ds, model, cfg, staged.path, roi=args.roi)
+    print(f"wrote {staged.final / LOCALIZE_FILES[0]} and {staged.final / LOCALIZE_FILES[1]}")
     return 0
+
+
+LOCALIZE_FILES = ("localization.csv", "localization.png")
 
 
 def _localize_and_report(ds, model, cfg, out: Path, roi: str | None = None) -> None:
@@ -92,22 +123,22 @@ def _localize_and_report(ds, model, cfg, out: Path, roi: str | None = None) -> N
     offline.write_atomic(out / "localization.png",
                          offline.plot_artifacts(rows, ds.kind, f"{ds.name}: n_i and error vs motion"))
     print(offline.format_table(rows, ds.kind))
-    print(f"wrote {out / 'localization.csv'} and {out / 'localization.png'}")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Main job until the dry-run lands: a quick arc dataset, localized, n_i-vs-angle table."""
     from supervisor.dataset.format import Dataset
     from supervisor.dataset.generate import ArcSpec, generate_arc
+    from supervisor.outputs import StagedOutput
 
-    cfg = _config(args)
-    out = Path(args.out)
-    ds_dir = out / "dataset"
-    print(f"generating a quick arc dataset ({cfg.scene}, azimuth {args.azimuth:g} deg, "
-          f"{args.images_per_position} images per position) in {ds_dir}")
-    generate_arc(cfg, ds_dir, ArcSpec(math.radians(args.azimuth), args.images_per_position), None, 0,
-                 overwrite=True)
-    _localize_and_report(Dataset.open(ds_dir), None, cfg, out)
+    with StagedOutput(args.out, "demo", known=("dataset", *LOCALIZE_FILES)) as staged:
+        cfg = _config(args)
+        print(f"generating a quick arc dataset ({cfg.scene}, azimuth {args.azimuth:g} deg, "
+              f"{args.images_per_position} images per position) in {staged.final / 'dataset'}")
+        ds_dir = generate_arc(cfg, staged.path / "dataset", ArcSpec(math.radians(args.azimuth),
+                                                                    args.images_per_position), None, 0)
+        _localize_and_report(Dataset.open(ds_dir), None, cfg, staged.path)
+    print(f"wrote {staged.final / 'dataset'}, {staged.final / LOCALIZE_FILES[0]} and {staged.final / LOCALIZE_FILES[1]}")
     return 0
 
 
@@ -125,11 +156,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_dry_run(args: argparse.Namespace) -> int:
     """The product's main job: one gated arc on the sim robot with the synthetic camera and the real pipeline."""
     from supervisor.dryrun import DryRunSpec, load_motion, run_dry_run, run_replay
+    from supervisor.outputs import StagedOutput, check_target
 
+    out = check_target(args.out, "dry-run", known=DRY_RUN_FILES)  # before any work; staged below
     cfg = _config(args)
-    out = Path(args.out)
     if args.replay:
-        s = run_replay(cfg, args.replay, args.stage or cfg.default_stage, out)
+        with StagedOutput(out, "dry-run", known=DRY_RUN_FILES) as staged:
+            s = run_replay(cfg, args.replay, args.stage or cfg.default_stage, staged.path, print)
     else:
         motion = load_motion(args.motion) if args.motion else {"azimuth": math.radians(90.0), "scene": None,
                                                                 "sweep": None}
@@ -138,7 +171,8 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
         spec = DryRunSpec(stage=args.stage or cfg.default_stage, azimuth=azimuth, sampling=args.sampling,
                           scene=args.scene or motion["scene"], seed=args.seed, oracle=not args.no_oracle,
                           sweep=motion["sweep"], accept_reachable=args.reachable)
-        s = run_dry_run(cfg, spec, out, realtime=args.realtime)
+        with StagedOutput(out, "dry-run", known=DRY_RUN_FILES) as staged:
+            s = run_dry_run(cfg, spec, staged.path, print, realtime=args.realtime)
     print(f"stage {s['stage']} ({s['sampling']}), scene {s['scene']}, azimuth {s['azimuth_deg']:g} deg: "
           f"halted at {s['halt_angle_deg']:.2f} deg ({s['halt_reason']})")
     if s.get("predicted_boundary_deg") is not None:
@@ -218,6 +252,9 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     return 0 if reply.get("ok") else EXIT_USAGE
 
 
+DRY_RUN_FILES = ("summary.json", "events.jsonl", "timeline.png")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="supervisor", description=__doc__.splitlines()[0])
     p.add_argument("--config", default=None, help="configuration YAML (default: embedded config/default.yaml)")
@@ -228,8 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("out")
     g.add_argument("--scene", default=None, help="scene name or YAML path (default: the config's)")
     g.add_argument("--motion", choices=["arc", "line"], required=True)
-    g.add_argument("--azimuth", type=float, default=0.0, help="arc direction [deg]: 0 up, 90 right, 270 left")
-    g.add_argument("--offset", type=float, default=0.0, help="line start offset from the model view [deg]")
+    g.add_argument("--azimuth", type=_finite, default=0.0, help="arc direction [deg]: 0 up, 90 right, 270 left")
+    g.add_argument("--offset", type=_finite, default=0.0, help="line start offset from the model view [deg]")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--images-per-position", type=int, default=None)
     g.add_argument("--force", action="store_true", help="replace an existing output directory")
@@ -265,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     dr = sub.add_parser("dry-run", help="gated arc on the simulated robot with the real pipeline (main job)")
     dr.add_argument("--stage", default=None, help="stage name (default: the config's default_stage)")
     dr.add_argument("--scene", default=None, help="scene name or YAML path (default: the config's)")
-    dr.add_argument("--azimuth", type=float, default=None,
+    dr.add_argument("--azimuth", type=_finite, default=None,
                     help="arc direction [deg]: 0 up, 90 right, 270 left (default 90, or the motion file's)")
     dr.add_argument("--motion", default=None, metavar="FILE",
                     help="motion YAML: kind: arc, azimuth_deg, optional scene and sweep_deg")
@@ -300,9 +337,9 @@ def build_parser() -> argparse.ArgumentParser:
         cs.add_parser(name, help=text)
     cr = cs.add_parser("run", help="run one gated arc")
     g = cr.add_mutually_exclusive_group(required=True)
-    g.add_argument("--azimuth", type=float, help="arc direction [deg]")
+    g.add_argument("--azimuth", type=_finite, help="arc direction [deg]")
     g.add_argument("--motion", default=None, metavar="FILE", help="motion YAML (kind: arc, azimuth_deg, sweep_deg)")
-    cr.add_argument("--sweep", type=float, default=None, help="end of the arc [deg] (default: the stage's hard limit)")
+    cr.add_argument("--sweep", type=_finite, default=None, help="end of the arc [deg] (default: the stage's hard limit)")
     cw = cs.add_parser("wait", help="wait for the current run to end and print its summary")
     cw.add_argument("--timeout", type=float, default=600.0)
     cg = cs.add_parser("stage", help="switch stage (only at rest)")
@@ -318,7 +355,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     de = sub.add_parser("demo", help="quick dataset + localization table (the default main job)")
     de.add_argument("-o", "--out", default="out/demo")
-    de.add_argument("--azimuth", type=float, default=90.0)
+    de.add_argument("--azimuth", type=_finite, default=90.0)
     de.add_argument("--images-per-position", type=int, default=2)
     de.set_defaults(func=cmd_demo)
     return p

@@ -24,7 +24,7 @@ from supervisor.prediction.models import VARIANTS
 from supervisor.stages import StageConfig, parse_stages
 
 from supervisor.paths import DEFAULT_CONFIG
-from supervisor.yamlschema import Node, load_yaml_text
+from supervisor.yamlschema import Node, decode_text, load_yaml_text, read_bounded
 
 
 @dataclass(frozen=True)
@@ -95,15 +95,8 @@ class Config:
 def load_config(path: str | Path | None = None) -> Config:
     """Load and validate a configuration file (default: the embedded config/default.yaml)."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ConfigError(path, "", f"cannot read configuration: {exc.strerror or exc}") from exc
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(path, "", f"not UTF-8 text: {exc}") from exc
-    root = Node(load_yaml_text(text, path), path)
+    raw = read_bounded(path, what="configuration")
+    root = Node(load_yaml_text(decode_text(raw, path), path), path)
     cfg = Config(
         robot=_robot(root.child("robot"), path),
         camera=_camera(root.child("camera")),

@@ -68,11 +68,11 @@ def load_motion(path: str | Path) -> dict[str, Any]:
 
     node = Node(load_yaml(path), path)
     node.string("kind", "arc", choices=("arc",))
+    sweep_deg = node.optional_number("sweep_deg", min=0.0, max=180.0, min_exclusive=True)
     out = {"azimuth": math.radians(node.number("azimuth_deg", min=0.0, max=360.0)),
            "scene": node.optional_string("scene"),
-           "sweep": math.radians(node.number("sweep_deg", min=0.0, max=180.0, min_exclusive=True))
-           if node.has("sweep_deg") else None}
-    node.done()
+           "sweep": None if sweep_deg is None else math.radians(sweep_deg)}
+    node.done()  # the unknown-key hint lists every key above, sweep_deg included
     return out
 
 

@@ -7,6 +7,7 @@ per-frame outcomes (a frame that does not localize) are status values instead.
      +-- ConfigError            bad YAML / schema violation (file, dotted key, expectation)
      +-- DatasetError           a recording on disk is missing, truncated or inconsistent
      +-- ModelFormatError       a target-model file of another version or shape
+     +-- OutputError            an output location that cannot be written or holds foreign files
      +-- DriverUnavailable      a driver name is unknown or its optional extra is missing
      +-- DriverError            a driver failed at run time (vendor errors are chained)
      |    +-- CameraTimeout     no frame within the timeout (also a TimeoutError)
@@ -59,6 +60,11 @@ class DatasetError(_FileError):
 
 class ModelFormatError(_FileError):
     """A target-model file is of another format version or is malformed."""
+
+
+class OutputError(_FileError):
+    """An output location cannot be used: under a file or /proc, not writable, or holding files
+    the project did not write (which it never deletes)."""
 
 
 class DriverUnavailable(SupervisorError):

@@ -99,7 +99,8 @@ def model_file(dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_localize_writes_csv_and_plot(localized: tuple[int, Path, str]) -> None:
     rc, out, _ = localized
     assert rc == 0
-    assert sorted(p.name for p in out.iterdir()) == ["localization.csv", "localization.png"]  # no temp files
+    # no temp files; the marker says which command wrote the directory (supervisor.outputs)
+    assert sorted(p.name for p in out.iterdir()) == [".supervisor-output", "localization.csv", "localization.png"]
     header, rows = read_csv(out / "localization.csv")
     assert [c for c in REQUIRED_COLUMNS if c not in header] == []
     assert len(rows) == 8

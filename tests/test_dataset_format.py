@@ -10,7 +10,7 @@ from drivers.camera.replay import ReplayCamera, ReplayExhausted
 from supervisor.camera_model import Intrinsics
 from supervisor.clock import SimClock
 from supervisor.dataset.format import Dataset, DatasetWriter
-from supervisor.errors import DatasetError, DriverUnavailable
+from supervisor.errors import DatasetError, DriverUnavailable, OutputError
 from supervisor.geometry import make_T
 
 INTR = Intrinsics(64, 48, 60.0, 60.0, 32.0, 24.0)
@@ -44,7 +44,7 @@ def test_roundtrip(tmp_path):
 
 def test_writer_refuses_existing_and_cleans_up_on_error(tmp_path):
     _write(tmp_path / "ds")
-    with pytest.raises(DatasetError, match="already exists"):
+    with pytest.raises(OutputError, match="already exists"):
         DatasetWriter(tmp_path / "ds")
     with pytest.raises(RuntimeError):
         with DatasetWriter(tmp_path / "other"):

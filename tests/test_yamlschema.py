@@ -25,7 +25,8 @@ def test_missing_file_is_config_error(tmp_path):
     [
         ("stages:\n  drill:\n    n_t: .nan\n", "must be a finite number"),
         ("stages:\n  drill:\n    n_t: 2\n", "must be >= 4"),
-        ("stages:\n  drill:\n    n_t: no\n", "expected a number, got boolean False"),
+        ("stages:\n  drill:\n    n_t: no\n", "'no' is the boolean false in YAML 1.1 but a string in YAML 1.2"),
+        ("stages:\n  drill:\n    n_t: false\n", "expected a number, got boolean false"),
         ("stages:\n  drill:\n    n_t: '15'\n", "expected a number"),
     ],
 )
@@ -45,8 +46,12 @@ def test_unknown_key_rejected():
 
 
 def test_octal_looking_int_and_vector():
-    n = Node(load_yaml_text("mode: 0755\nv: [1, 2.5, 3]\n"), "f")
-    assert n.integer("mode") == 493  # YAML 1.1 octal: callers must range-check
+    # YAML 1.1 read 0755 as 493, YAML 1.2 as 755: a threshold must mean what it says, so it is refused;
+    # only the explicit 0o755 is octal.
+    n = Node(load_yaml_text("mode: 0755\nm: 0o755\nv: [1, 2.5, 3]\n"), "f")
+    with pytest.raises(ConfigError, match=r"f: mode: expected an integer: '0755' is ambiguous: YAML 1.1 reads it as the octal 493"):
+        n.integer("mode")
+    assert n.integer("m") == 493
     v = n.vector("v", 3)
     assert np.allclose(v, [1, 2.5, 3]) and not v.flags.writeable
     with pytest.raises(ConfigError, match=r"v: expected a list of 2 numbers"):

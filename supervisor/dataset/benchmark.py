@@ -34,6 +34,7 @@ from pathlib import Path
 from supervisor.config import Config, load_config
 from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
 from supervisor.errors import DatasetError, SupervisorError
+from supervisor.outputs import prepare_incremental
 
 SUITE_FILE = "suite.json"
 ARC_AZIMUTHS_DEG = (0.0, 90.0, 270.0)
@@ -82,11 +83,11 @@ def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int 
     manifest = {"config_sha256": cfg.sha256, "quick": quick, "seed": seed, "images_per_position": ipp or "config",
                 "datasets": [asdict(i) for i in items]}
     mf = out / SUITE_FILE
+    prepare_incremental(out, "benchmark generate", known=[SUITE_FILE, *(i.name for i in items)])
     if mf.exists():
         old = json.loads(mf.read_text(encoding="utf-8"))
         if old != manifest:
             raise DatasetError(mf, "an existing suite with other parameters is here; choose another directory")
-    out.mkdir(parents=True, exist_ok=True)
     tmp = mf.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(manifest, indent=1), encoding="utf-8")
     os.replace(tmp, mf)

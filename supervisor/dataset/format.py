@@ -22,9 +22,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
-import shutil
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +32,8 @@ import numpy as np
 
 from supervisor.camera_model import Intrinsics
 from supervisor.errors import DatasetError
+from supervisor.geometry import InvalidTransform, validate_T
+from supervisor.outputs import StagedOutput
 
 FORMAT_NAME = "panda-supervisor-dataset"
 FORMAT_VERSION = 1
@@ -47,6 +46,8 @@ FRAME_COLUMNS = (
     + [f"T_base_flange_{m}" for m in _MAT]
     + [f"T_cam_target_true_{m}" for m in _MAT]
 )
+DATASET_COMMAND = "dataset generate"
+DATASET_FILES = (METADATA_FILE, FRAMES_FILE, "model", "frames", "model.npz")  # what a dataset directory holds
 REQUIRED_METADATA = ("format", "format_version", "kind", "intrinsics", "T_flange_cam", "model_images", "motion")
 
 
@@ -78,25 +79,92 @@ class FrameRecord:
                 "T_cam_target_true": None if self.T_cam_target_true is None else self.T_cam_target_true.tolist()}
 
 
+RIGID_TOL = 1e-4  # |R^T R - I|: recorded transforms are rigid to far better than this
+
+
 def _matrix(value: Any, where: str, file: Path) -> np.ndarray:
+    """A finite rigid 4x4 transform (orthonormal rotation, last row 0 0 0 1), or DatasetError at `where`."""
     try:
         m = np.asarray(value, dtype=float).reshape(4, 4)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise DatasetError(file, f"{where}: expected a 4x4 matrix") from exc
-    if not np.all(np.isfinite(m)):
+    try:
+        return validate_T(m, where, tol=RIGID_TOL)
+    except InvalidTransform as exc:
+        raise DatasetError(file, str(exc)) from None
+
+
+def _finite_vector(value: Any, n: int, where: str, file: Path) -> np.ndarray:
+    try:
+        v = np.asarray(value, dtype=float).reshape(n)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise DatasetError(file, f"{where}: expected {n} numbers") from exc
+    if not np.all(np.isfinite(v)):
         raise DatasetError(file, f"{where}: contains NaN or inf")
-    return m
+    return v
 
 
-def _record_from_json(d: dict[str, Any], where: str, file: Path) -> FrameRecord:
+def _finite(value: Any, where: str, file: Path) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise DatasetError(file, f"{where}: expected a finite number, got {str(value)[:40]!r}")
+    return float(value)
+
+
+def _record_from_json(d: Any, where: str, file: Path) -> FrameRecord:
+    if not isinstance(d, dict):
+        raise DatasetError(file, f"{where}: expected an object, got {type(d).__name__}")
+    if not isinstance(d.get("file"), str) or not d["file"]:
+        raise DatasetError(file, f"{where}.file: expected a file name")
     try:
         gt = d.get("T_cam_target_true")
-        return FrameRecord(int(d.get("index", -1)), int(d.get("position", -1)), float(d.get("s", 0.0)),
-                           float(d["t"]), str(d["file"]), np.asarray(d["q"], dtype=float).reshape(7),
+        return FrameRecord(int(d.get("index", -1)), int(d.get("position", -1)),
+                           _finite(d.get("s", 0.0), f"{where}.s", file), _finite(d["t"], f"{where}.t", file),
+                           d["file"], _finite_vector(d["q"], 7, f"{where}.q", file),
                            _matrix(d["T_base_flange"], f"{where}.T_base_flange", file),
                            None if gt is None else _matrix(gt, f"{where}.T_cam_target_true", file))
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise DatasetError(file, f"{where}: malformed record ({exc})") from exc
+
+
+def _intrinsics(value: Any, mf: Path) -> Intrinsics:
+    """Positive finite focal lengths, finite principal point and distortion, a sane image size."""
+    try:
+        intr = Intrinsics.from_dict(value)
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        raise DatasetError(mf, f"malformed intrinsics ({exc})") from exc
+    if not (0 < intr.width <= 100_000 and 0 < intr.height <= 100_000):
+        raise DatasetError(mf, f"intrinsics: image size {intr.width}x{intr.height} out of range")
+    for name in ("fx", "fy", "cx", "cy"):
+        v = getattr(intr, name)
+        if not math.isfinite(v) or (name in ("fx", "fy") and v <= 0):
+            raise DatasetError(mf, f"intrinsics.{name}: expected a finite{' positive' if name[0] == 'f' else ''} "
+                                   f"number, got {v}")
+    if not all(math.isfinite(x) for x in intr.dist):
+        raise DatasetError(mf, "intrinsics.dist: contains NaN or inf")
+    return intr
+
+
+_MOTION_NUMBERS = ("azimuth", "step", "sweep", "start_offset")
+_MOTION_VECTORS = ("pivot_base", "axis_base", "direction_base")
+_MOTION_TRANSFORMS = ("T_base_cam0", "T_base_cam_start")
+
+
+def _check_motion(motion: Any, mf: Path) -> None:
+    """The motion record's known fields, where present, are finite (replay drives the robot from them)."""
+    if not isinstance(motion, dict):
+        raise DatasetError(mf, f"motion: expected an object, got {type(motion).__name__}")
+    for k in _MOTION_NUMBERS:
+        if k in motion:
+            _finite(motion[k], f"motion.{k}", mf)
+    for k in ("positions", "images_per_position"):
+        if k in motion and (isinstance(motion[k], bool) or not isinstance(motion[k], int) or motion[k] < 1):
+            raise DatasetError(mf, f"motion.{k}: expected a positive integer, got {str(motion[k])[:40]!r}")
+    for k in _MOTION_VECTORS:
+        if k in motion:
+            _finite_vector(motion[k], 3, f"motion.{k}", mf)
+    for k in _MOTION_TRANSFORMS:
+        if k in motion:
+            _matrix(motion[k], f"motion.{k}", mf)
 
 
 def _check_target(target: Any, mf: Path) -> None:
@@ -109,23 +177,28 @@ def _check_target(target: Any, mf: Path) -> None:
 
     if target.get("board") is not None:
         try:
-            BoardSpec.from_dict(target["board"])
-        except (KeyError, TypeError, ValueError) as exc:
+            b = BoardSpec.from_dict(target["board"])
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             raise DatasetError(mf, f"target.board: malformed ChArUco board ({exc!r})") from exc
+        if not (2 <= b.squares_x <= 100 and 2 <= b.squares_y <= 100 and math.isfinite(b.square_m)
+                and 0 < b.marker_m < b.square_m <= 1.0):
+            raise DatasetError(mf, "target.board: expected 2..100 squares each way and 0 < marker_m < square_m <= 1 m")
     rb = target.get("roi_box")
     if rb is not None:
         try:
             T = np.asarray(rb["T_target_box"], float)
             half = np.asarray(rb["half_extents"], float)
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
             raise DatasetError(mf, f"target.roi_box: malformed ({exc!r})") from exc
-        if T.shape != (4, 4) or half.shape != (3,) or not (np.all(np.isfinite(T)) and np.all(half > 0)):
+        if T.shape != (4, 4) or half.shape != (3,) or not (np.all(np.isfinite(T)) and np.all(half > 0)
+                                                             and np.all(np.isfinite(half))):
             raise DatasetError(mf, "target.roi_box: expected T_target_box 4x4 and 3 positive half_extents")
+        _matrix(T, "target.roi_box.T_target_box", mf)
     rp = target.get("reference_point_m")
     if rp is not None:
         try:
             p = np.asarray(rp, float)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise DatasetError(mf, f"target.reference_point_m: malformed ({exc!r})") from exc
         if p.shape != (3,) or not np.all(np.isfinite(p)):
             raise DatasetError(mf, f"target.reference_point_m: expected 3 finite numbers (metres), got {rp!r}")
@@ -138,9 +211,9 @@ class Dataset:
         self.root = root
         self.meta = meta
         self.frames = frames
-        self.intrinsics = Intrinsics.from_dict(meta["intrinsics"])
-        self.T_flange_cam = _matrix(meta["T_flange_cam"], "T_flange_cam", root / METADATA_FILE)
         mf = root / METADATA_FILE
+        self.intrinsics = _intrinsics(meta["intrinsics"], mf)
+        self.T_flange_cam = _matrix(meta["T_flange_cam"], "T_flange_cam", mf)
         self.model_images = [_record_from_json(d, f"model_images[{i}]", mf) for i, d in enumerate(meta["model_images"])]
 
     # -- opening -------------------------------------------------------------
@@ -154,8 +227,8 @@ class Dataset:
             raise DatasetError(mf, "missing dataset metadata file")
         try:
             meta = json.loads(mf.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise DatasetError(mf, f"unreadable metadata ({exc})") from exc
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            raise DatasetError(mf, f"unreadable metadata ({type(exc).__name__})") from exc
         if not isinstance(meta, dict):
             raise DatasetError(mf, "metadata must be a JSON object")
         missing = [k for k in REQUIRED_METADATA if k not in meta]
@@ -167,17 +240,22 @@ class Dataset:
             raise DatasetError(mf, f"format version {meta['format_version']} is not supported (expected {FORMAT_VERSION})")
         if not isinstance(meta["model_images"], list) or len(meta["model_images"]) != 2:
             raise DatasetError(mf, "model_images: expected a list of 2 model-image records")
+        if meta["kind"] not in ("arc", "line"):
+            raise DatasetError(mf, f"kind: expected 'arc' or 'line', got {str(meta['kind'])[:40]!r}")
+        for key in ("scene", "target"):
+            if meta.get(key) is not None and not isinstance(meta[key], dict):
+                raise DatasetError(mf, f"{key}: expected an object, got {type(meta[key]).__name__}")
+        if "seed" in meta and (isinstance(meta["seed"], bool) or not isinstance(meta["seed"], int)):
+            raise DatasetError(mf, f"seed: expected an integer, got {str(meta['seed'])[:40]!r}")
         _check_target(meta.get("target"), mf)
-        try:
-            Intrinsics.from_dict(meta["intrinsics"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DatasetError(mf, f"malformed intrinsics ({exc})") from exc
+        _check_motion(meta["motion"], mf)
+        _intrinsics(meta["intrinsics"], mf)
         frames = cls._read_frames(root / FRAMES_FILE)
         ds = cls(root, meta, frames)
         for rec in [*ds.model_images, *frames]:
             p = ds.path_of(rec)
             if not p.is_file():
-                raise DatasetError(p, "image file listed in the dataset is missing")
+                raise DatasetError(p, f"image file listed in the dataset is missing ({ds._where(rec)})")
         return ds
 
     @staticmethod
@@ -199,14 +277,20 @@ class Dataset:
                             np.array([float(row[f"T_base_flange_{m}"]) for m in _MAT]).reshape(4, 4),
                             None if gt == "" else np.array([float(row[f"T_cam_target_true_{m}"]) for m in _MAT]).reshape(4, 4),
                         )
-                    except (TypeError, ValueError) as exc:
+                    except (TypeError, ValueError, OverflowError) as exc:
                         raise DatasetError(path, f"line {lineno}: malformed value ({exc})") from exc
-                    if not (np.all(np.isfinite(rec.q)) and np.all(np.isfinite(rec.T_base_flange))
-                            and math.isfinite(rec.t)):
+                    if not (np.all(np.isfinite(rec.q)) and math.isfinite(rec.t) and math.isfinite(rec.s)):
                         raise DatasetError(path, f"line {lineno}: non-finite value")
+                    _matrix(rec.T_base_flange, f"line {lineno}: T_base_flange", path)
+                    if rec.T_cam_target_true is not None:
+                        _matrix(rec.T_cam_target_true, f"line {lineno}: T_cam_target_true (ground truth)", path)
+                    if not rec.file:
+                        raise DatasetError(path, f"line {lineno}: file: expected a file name")
                     out.append(rec)
         except OSError as exc:
             raise DatasetError(path, f"unreadable ({exc})") from exc
+        except (csv.Error, UnicodeDecodeError) as exc:
+            raise DatasetError(path, f"not a version-1 frame index ({type(exc).__name__}: {str(exc)[:80]})") from exc
         if not out:
             raise DatasetError(path, "dataset has no frames")
         return out
@@ -231,11 +315,24 @@ class Dataset:
     def has_ground_truth(self) -> bool:
         return all(f.T_cam_target_true is not None for f in self.frames)
 
+    def _where(self, rec: FrameRecord) -> str:
+        """Where a record's file name is listed: `model_images[i].file` or the frame's line."""
+        for i, m in enumerate(self.model_images):
+            if m is rec:
+                return f"model_images[{i}].file"
+        return f"line {rec.index + 2}: file" if 0 <= rec.index < len(self.frames) and self.frames[rec.index] is rec \
+            else "file"
+
     def path_of(self, rec: FrameRecord) -> Path:
-        p = (self.root / rec.file).resolve()
-        root = self.root.resolve()
+        """The record's image path, confined to the dataset root (symlinks resolved)."""
+        listed_in = self.root / (METADATA_FILE if any(m is rec for m in self.model_images) else FRAMES_FILE)
+        try:
+            p = (self.root / rec.file).resolve()
+            root = self.root.resolve()
+        except (OSError, ValueError, RuntimeError) as exc:
+            raise DatasetError(listed_in, f"{self._where(rec)}: unusable image path ({type(exc).__name__})") from exc
         if root not in p.parents:
-            raise DatasetError(self.root / FRAMES_FILE, f"image path {rec.file!r} escapes the dataset root")
+            raise DatasetError(listed_in, f"{self._where(rec)}: image path {rec.file[:80]!r} escapes the dataset root")
         return p
 
     def load_image(self, rec: FrameRecord) -> np.ndarray:
@@ -266,12 +363,13 @@ class DatasetWriter:
     """Writes a dataset into a temporary directory and renames it into place on `finish()`."""
 
     def __init__(self, root: str | Path, overwrite: bool = False) -> None:
-        self.root = Path(root)
-        if self.root.exists() and not overwrite:
-            raise DatasetError(self.root, "output already exists (choose another path or remove it)")
-        self.root.parent.mkdir(parents=True, exist_ok=True)
+        # Checked here, before any frame is rendered: a bad location, or with `overwrite` an existing
+        # directory holding anything but an earlier dataset, fails now (supervisor.outputs).
+        self._staged = StagedOutput(root, DATASET_COMMAND, replace=overwrite, known=DATASET_FILES,
+                                    exists_hint="choose another path, or --force to replace a dataset")
+        self.root = self._staged.final
         self.overwrite = overwrite
-        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.partial-", dir=self.root.parent))
+        self._tmp = self._staged.path
         (self._tmp / "model").mkdir()
         (self._tmp / "frames").mkdir()
         self._frames: list[FrameRecord] = []
@@ -313,19 +411,13 @@ class DatasetWriter:
                 "frames_file": FRAMES_FILE, "n_frames": len(self._frames),
                 "n_positions": len({f.position for f in self._frames})}
         (self._tmp / METADATA_FILE).write_text(json.dumps(full, indent=1), encoding="utf-8")
-        old = None
-        if self.root.exists():
-            old = self.root.with_name(f".{self.root.name}.old-{os.getpid()}")
-            os.replace(self.root, old)
-        os.replace(self._tmp, self.root)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        self._staged.commit()
         self._done = True
         return self.root
 
     def abort(self) -> None:
         if not self._done:
-            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._staged.abort()
             self._done = True
 
     def __enter__(self) -> DatasetWriter:

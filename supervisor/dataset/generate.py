@@ -26,6 +26,7 @@ from sim.robot import SimRobot
 from sim.scene import Scene, load_scene
 from supervisor import __version__
 from supervisor.config import Config
+from supervisor.errors import ConfigError
 from supervisor.dataset.format import DatasetWriter
 from supervisor.geometry import make_T
 from supervisor.motion.paths import ArcPath, LinePath, start_camera_pose
@@ -37,16 +38,28 @@ def _stderr_progress(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def _finite_angle(value: float, name: str, limit: float) -> None:
+    if not (math.isfinite(value) and abs(value) <= limit):
+        raise ConfigError(None, name, f"must be a finite angle within +-{math.degrees(limit):g} deg, got "
+                                      f"{math.degrees(value) if math.isfinite(value) else value:g} deg")
+
+
 @dataclass(frozen=True)
 class ArcSpec:
     azimuth: float  # rad
     images_per_position: int | None = None  # None: the config's protocol
+
+    def __post_init__(self) -> None:
+        _finite_angle(self.azimuth, "azimuth", 2 * math.pi)
 
 
 @dataclass(frozen=True)
 class LineSpec:
     start_offset: float  # rad, arc angle (azimuth 90 deg) from the model view
     images_per_position: int | None = None
+
+    def __post_init__(self) -> None:
+        _finite_angle(self.start_offset, "offset", math.radians(90.0))
 
 
 class _Recorder:
@@ -59,11 +72,11 @@ class _Recorder:
         self.kin = PandaKinematics(T_flange_cam=cfg.camera.T_flange_cam, urdf=cfg.robot.urdf)
         self.robot = SimRobot(self.kin, cfg.robot.q_start, dt=cfg.robot.control_period_s)
         self.renderer = Renderer(scene, cfg.camera.intrinsics)
-        self.writer = DatasetWriter(out, overwrite=overwrite)
         self.frame_index = 0
         self.pivot_base = (scene.T_base_scene @ np.append(scene.pivot, 1.0))[:3]
         self.T_base_cam0 = start_camera_pose(self.pivot_base, scene.view.radius, scene.view.elevation,
                                              scene.view.heading)
+        self.writer = DatasetWriter(out, overwrite=overwrite)  # last: nothing after it can fail and leave it
 
     def _settle_and_render(self) -> tuple[Any, Any]:
         """Hold still for one frame period, then render the executed camera pose."""

@@ -36,6 +36,7 @@ from supervisor.dataset.benchmark import load_suite
 from supervisor.dataset.format import Dataset
 from supervisor.errors import DatasetError
 from supervisor.evaluation.cache import localized
+from supervisor.outputs import prepare_incremental
 from supervisor.evaluation.metrics import CurvePoint, actual_boundary, max_mean_spl_zero_incursion, spl
 from supervisor.prediction.emg import ANGLE, TRANSLATION
 from supervisor.prediction.mlp import MLPPredictor
@@ -228,9 +229,13 @@ def _ceiling(results: list[DatasetResult], kind: str) -> dict[str, Any]:
     return out
 
 
+EVALUATE_FILES = ("cache", "results.json", "tables.md", "spl_vs_incursion_arc.png", "spl_vs_incursion_line.png")
+
+
 def run_evaluation(cfg: Config, bench_dir: str | Path, out: str | Path, jobs: int = 2,
                    progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
-    bench_dir, out = Path(bench_dir), Path(out)
+    bench_dir = Path(bench_dir)
+    out = prepare_incremental(out, "evaluate", known=EVALUATE_FILES)  # before any work
     datasets = load_suite(bench_dir)
     if not datasets:
         raise DatasetError(bench_dir, "no datasets found (expected a benchmark suite or dataset directories)")

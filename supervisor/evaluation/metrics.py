@@ -1,4 +1,4 @@
-"""The paper's metrics (METHOD.md §4): actual boundary, safe path length, incursion rate, sweeps.
+"""The paper's metrics (docs/method.md §4): actual boundary, safe path length, incursion rate, sweeps.
 
 Units follow the caller (radians or metres in code); every function is pure.
 """

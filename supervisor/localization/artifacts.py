@@ -1,4 +1,4 @@
-"""The pipeline artifacts' independent variables (METHOD.md §2).
+"""The pipeline artifacts' independent variables (docs/method.md §2).
 
 `theta_i`: magnitude of the camera rotation between the model view and sample i
 (angle of R0^T R_i). `x_i`: camera translation from the first pose of a

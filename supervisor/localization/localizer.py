@@ -1,6 +1,6 @@
 """Per-frame target localization: CLAHE -> SIFT -> ratio-test matching -> PnP-RANSAC.
 
-The pipeline of the paper (METHOD.md §1). Its artifact is the RANSAC inlier
+The pipeline of the paper (docs/method.md §1). Its artifact is the RANSAC inlier
 count `n_i`, which the predictors consume. To keep latency low on two cores,
 SIFT runs only inside a region of interest: the target model's points
 projected with a *predicted* target pose (robot motion since the last

@@ -344,7 +344,7 @@ def peak_location(alpha: float, K: float, mu: float, x_max: float) -> float:
 
 def boundary(params: tuple[float, float, float], n_t: float, x_now: float, x_max: float,
              scale: float = 1.0) -> float:
-    """theta_p (fit units): where f falls to n_t beyond the peak (METHOD.md §2).
+    """theta_p (fit units): where f falls to n_t beyond the peak (docs/method.md §2).
 
     - f already below n_t at x_now (and beyond the peak) -> x_now (stop now);
     - f never falls to n_t before x_max -> x_max;

@@ -27,7 +27,7 @@ fit. Variants (selectable by name per stage):
 
 All but ``paper`` share two more rules. **The observation guard**: if the frames
 at the furthest position already average <= n_t, theta_p = x_now whatever the
-curve says (METHOD.md's "already below n_t at the current angle", applied to the
+curve says (docs/method.md's "already below n_t at the current angle", applied to the
 data as well as to the model, which may lag a sharp drop).
 **The exponential-tail fallback**: early in
 an arc the samples often show only the decaying side of the EMG. Then alpha and

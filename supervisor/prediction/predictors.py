@@ -1,4 +1,4 @@
-"""Predictors: samples in, prediction out, state visible (METHOD.md §3).
+"""Predictors: samples in, prediction out, state visible (docs/method.md §3).
 
 All take samples in SI units (radians or metres, see `Axis`) one sampling step
 at a time (`update(xs, ns)` with the step's frames) and return a `Prediction`
