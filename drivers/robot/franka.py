@@ -5,14 +5,15 @@ protocol, tests/test_franka_sim.py); not yet run on a physical arm.
 
 Commands. The supervisor streams one joint-position target per tick; franky does
 not take raw 1 kHz positions from Python, so the driver turns the stream into
-franky motions. Measured on franky-sim (benchmarks/bench_franka.py): preempting
-the running motion with a new `JointMotion(q)` every tick (the earlier design)
-lags the path by 0.1-0.8 s, because each new motion plans to come to rest at
-its target. The default `command_mode="velocity"` instead sends, every
-`send_period`, a `JointVelocityMotion` of the path's own velocity (from the
-target stream) plus `gain` x (target - measured position), held for `deadman`
-seconds: a few ms of lag, and an arm whose commands stop coming (a hung
-supervisor) brakes to rest by itself once `deadman` runs out.
+franky motions. Measured on franky-sim (benchmarks/bench_franka.py, README "Franka driver"):
+preempting the running motion with a new `JointMotion(q)` every tick (the
+earlier design, `command_mode="position"`) lags the supervisor's arc by 0.3-0.4 s
+(p50), because each new motion plans to come to rest at its target. The default
+`command_mode="velocity"` instead sends, every `send_period` (4 ms), a
+`JointVelocityMotion` of the target stream's own velocity plus `gain` (50/s) x
+(target - measured position), held for `deadman` seconds: 4-14 ms p50 lag, and an
+arm whose commands stop coming (a hung supervisor) brakes to rest by itself once
+`deadman` runs out.
 
 State. `t` is the supervisor-clock time at which the current robot state first
 arrived: franky's `state` is the control loop's latest sample, which freezes when
@@ -44,6 +45,7 @@ from supervisor.clock import Clock, MonotonicClock
 from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, RobotFault
 
 COMMAND_MODES = ("velocity", "position")
+STALE_STATE_S = 0.02  # s: a robot state older than this steers no new motion (the supervisor's gap rule)
 # A dead or broken link: the robot object cannot be used again.
 _LINK_ERRORS = (franky.NetworkException, franky.ProtocolException, franky.IncompatibleVersionException)
 PANDA_HINT = (
@@ -84,12 +86,12 @@ class FrankaRobot(Robot):
         *,
         control_period: float = 0.001,
         command_mode: str = "velocity",
-        send_period: float = 0.01,
+        send_period: float = 0.004,
         gain: float = 50.0,
         max_correction: float = 0.5,
         deadman: float = 0.05,
         max_tracking_error: float = 0.05,
-        link_timeout: float = 0.1,
+        link_timeout: float = 0.2,
         relative_dynamics_factor: float = 1.0,
         realtime: bool | None = None,
         clock: Clock | None = None,
@@ -122,6 +124,7 @@ class FrankaRobot(Robot):
         self._period = float(control_period)
         self._v_max = kin.dq_max * relative_dynamics_factor
         self.motions_sent = 0
+        self.sends_withheld = 0  # targets not sent because the robot state was stale
         self._robot: franky.Robot | None = None
         self._connect()
 
@@ -262,6 +265,13 @@ class FrankaRobot(Robot):
         self._last_cmd, self._last_cmd_t = q.copy(), now
         if self._last_send_t is not None and now - self._last_send_t < self.send_period:
             return
+        if self._meas is None or now - self._meas[0] > 2 * self._period + 0.002:
+            self.state()  # the caller did not read the state this tick: steer by a fresh one
+        if now - self._fresh_t > STALE_STATE_S:
+            # No fresh state to steer by: send nothing, so the running velocity motion's dead-man hold
+            # runs out and the arm brakes; the caller's own state-age rule sees the same stale `t`.
+            self.sends_withheld += 1
+            return
         motion = self._velocity_motion(q, now) if self.command_mode == "velocity" else \
             franky.JointMotion(q, return_when_finished=False)
         try:
@@ -274,8 +284,6 @@ class FrankaRobot(Robot):
 
     def _velocity_motion(self, q: np.ndarray, now: float) -> franky.JointVelocityMotion:
         """Feed-forward velocity of the target stream plus a clipped proportional pull toward the target."""
-        if self._meas is None or now - self._meas[0] > 2 * self._period + 0.002:
-            self.state()
         q_meas = self._meas[1]
         err = q - q_meas
         worst = int(np.argmax(np.abs(err)))
