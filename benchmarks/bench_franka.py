@@ -5,8 +5,8 @@ Each scheme streams the supervisor's own path - the default arc (10 deg/s, 20 de
 mapped to joints by PathFollower beforehand - one joint target per tick on the real
 clock, reading `state()` every tick as the supervisor does. Lag = arrival time of a
 reported joint state minus the time its position was commanded (the reported q located
-on the commanded path, interpolated between ticks), over the part of the path that
-moves. Then: the stop's braking distance from cruise against a Ruckig joint brake with
+on the commanded path, interpolated between ticks), where the path moves at >= 25% of
+its peak speed. Then: the stop's braking distance from cruise against a Ruckig joint brake with
 the arm's datasheet limits from the same state; the flange pose the controller reports
 against our kinematics; and, after SIGKILL of franky-sim mid-motion, when the caller's
 20 ms age rule fires, when state() raises, and how long a new robot object takes.
@@ -92,25 +92,29 @@ def stream(robot: FrankaRobot, qs: np.ndarray, dt: float, hold_s: float = 0.3, k
     return {"t_cmd": np.array(t_cmd), "states": states, "late": late, "qs": qs}
 
 
-def lag_ms(run: dict, moving_tol: float = 1e-4) -> np.ndarray:
-    """Per fresh reported state during the motion: its arrival time minus when its position was commanded."""
+def lag_ms(run: dict, min_speed: float = 0.25) -> np.ndarray:
+    """Per fresh reported state: its arrival time minus when its position was commanded.
+
+    Counted where the commanded path moves at >= `min_speed` of its peak speed (near rest a
+    position error of a few micro-radians reads as a long time lag).
+    """
     qs, t_cmd = run["qs"], run["t_cmd"][: len(run["qs"])]
+    speed = np.r_[np.linalg.norm(np.diff(qs, axis=0), axis=1), 0.0]
+    moving = speed >= min_speed * speed.max()
     seen, out = set(), []
-    d_total = np.linalg.norm(qs[-1] - qs[0])
     for _, st in run["states"]:
         if st.seq in seen:
             continue
         seen.add(st.seq)
         dist = np.linalg.norm(qs - st.q, axis=1)
         k = int(np.argmin(dist))
-        if np.linalg.norm(st.q - qs[0]) < 0.02 * d_total or np.linalg.norm(st.q - qs[-1]) < 0.02 * d_total:
-            continue  # not yet moving / already arrived: no lag defined
+        if not moving[k] or k + 1 >= len(qs):
+            continue
         # sub-tick: project onto the segment toward the neighbour on the other side
-        j = k + 1 if k + 1 < len(qs) and (k == 0 or dist[k + 1] < dist[k - 1]) else k - 1
+        j = k + 1 if k == 0 or dist[k + 1] < dist[k - 1] else k - 1
         seg = qs[j] - qs[k]
-        frac = float(np.clip((st.q - qs[k]) @ seg / max(seg @ seg, 1e-18), 0.0, 1.0)) if seg @ seg > moving_tol**2 else 0
-        tc = t_cmd[k] + frac * (t_cmd[j] - t_cmd[k])
-        out.append((st.t - tc) * 1000.0)
+        frac = float(np.clip((st.q - qs[k]) @ seg / (seg @ seg), 0.0, 1.0))
+        out.append((st.t - (t_cmd[k] + frac * (t_cmd[j] - t_cmd[k]))) * 1000.0)
     return np.array(out)
 
 
@@ -133,12 +137,19 @@ def scheme_runs(host: str, kin: PandaKinematics, schemes: list[dict], arc: float
         dt = spec.pop("dt")
         name = f"{spec['command_mode']} @{1 / dt:.0f} Hz ticks, send {1 / spec['send_period']:.0f} Hz" + (
             f", K {spec['gain']:.0f}" if spec["command_mode"] == "velocity" else "")
+        if spec["command_mode"] == "impedance":
+            name = f"franky joint impedance @{1 / dt:.0f} Hz (torque)"
         try:
-            with FrankaRobot(kin, host, control_period=dt, max_tracking_error=0.5, link_timeout=1.0, **spec) as robot:
+            with FrankaRobot(kin, host, control_period=dt, max_tracking_error=0.5, link_timeout=1.0,
+                             **(spec if spec["command_mode"] != "impedance" else {})) as robot:
                 go_to(robot, kin, Q_START, dt)
                 qs = arc_joint_path(kin, dt, arc)
                 robot.motions_sent = 0
-                run = stream(robot, qs, dt, hold_s=0.4)
+                if spec["command_mode"] == "impedance":
+                    robot.close()
+                    run = impedance_run(host, kin, arc, dt, spec["stiffness"])
+                else:
+                    run = stream(robot, qs, dt, hold_s=0.4)
                 lag = lag_ms(run)
                 qf = run["states"][-1][1].q
                 age = max(t - st.t for t, st in run["states"]) * 1e3
@@ -148,9 +159,41 @@ def scheme_runs(host: str, kin: PandaKinematics, schemes: list[dict], arc: float
                 print(f"{name:<44} {np.percentile(lag, 50):>10.1f} {np.percentile(lag, 99):>8.1f} "
                       f"{np.abs(qf - qs[-1]).max() * 1e3:>10.2f} {over * 1e3:>9.2f} {robot.motions_sent:>7d} "
                       f"{run['late']:>5d} {robot_rate(run):>6.2f} {age:>10.1f}")
-                robot.stop()
+                if not robot.closed:
+                    robot.stop()
         except SupervisorError as exc:
             print(f"{name:<44} FAILED: {exc}")
+
+
+def impedance_run(host: str, kin: PandaKinematics, arc: float, dt: float, stiffness: np.ndarray) -> dict:
+    """franky's streaming joint-impedance tracker (torque control) fed the same targets, outside our driver."""
+    import franky
+    from supervisor.arm.state import RobotState
+
+    with FrankaRobot(kin, host, control_period=dt) as robot:
+        go_to(robot, kin, Q_START, dt)
+    fr = franky.Robot(host, realtime_config=franky.RealtimeConfig.Ignore)
+    qs = arc_joint_path(kin, dt, arc)
+    motion = franky.JointImpedanceTrackingMotion(stiffness=stiffness)
+    motion.set_reference(franky.JointReference(q=fr.current_joint_positions))
+    fr.move(motion, asynchronous=True)
+    t_cmd, states, fresh = [], [], {}
+    t0 = time.monotonic()
+    for k in range(len(qs) + int(0.4 / dt)):
+        delay = t0 + k * dt - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        raw = fr.state
+        ms = int(raw.time.to_msec())
+        fresh.setdefault(ms, time.monotonic())
+        q = np.array(raw.q)
+        states.append((time.monotonic(), RobotState(fresh[ms], ms, q, np.array(raw.dq), np.eye(4), ms / 1000)))
+        j = min(k, len(qs) - 1)
+        dq = (qs[j] - qs[j - 1]) / dt if 0 < k < len(qs) else np.zeros(7)
+        motion.set_reference(franky.JointReference(q=qs[j], dq=dq))
+        t_cmd.append(time.monotonic())
+    fr.stop()
+    return {"t_cmd": np.array(t_cmd), "states": states, "late": 0, "qs": qs}
 
 
 def ruckig_brake_distance(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, v_max: np.ndarray, a_max: np.ndarray,
@@ -172,7 +215,7 @@ def ruckig_brake_distance(q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, v_max:
 
 def braking(host: str, kin: PandaKinematics, dt: float, repeats: int) -> None:
     print(f"\nstop() from cruise ({repeats} runs): braking distance along the motion, |dq| at the stop call")
-    with FrankaRobot(kin, host, control_period=dt) as robot:
+    with FrankaRobot(kin, host, control_period=dt, max_tracking_error=0.5, link_timeout=1.0) as robot:
         for r in range(repeats):
             go_to(robot, kin, Q_START, dt)
             q_far = Q_START + np.array([0.3, 0.2, -0.2, 0.2, 0.2, -0.2, 0.3])
@@ -284,6 +327,10 @@ def main() -> int:
         dict(dt=0.001, command_mode="position", send_period=0.001),
         dict(dt=0.004, command_mode="position", send_period=0.004),
         dict(dt=0.001, command_mode="position", send_period=0.01),
+        dict(dt=0.004, command_mode="position_velocity", send_period=0.004),
+        dict(dt=0.001, command_mode="position_velocity", send_period=0.01),
+        dict(dt=0.001, command_mode="impedance", send_period=0.001, gain=0.0,
+             stiffness=np.array([600.0, 600.0, 600.0, 600.0, 250.0, 150.0, 50.0])),
     ]
     vel = [dict(dt=dt, command_mode="velocity", send_period=sp, gain=g)
            for dt, sp, g in [(0.001, 0.01, 50.0), (0.004, 0.01, 50.0), (0.004, 0.004, 50.0), (0.001, 0.004, 50.0),

@@ -44,7 +44,7 @@ from supervisor.arm.state import RobotState
 from supervisor.clock import Clock, MonotonicClock
 from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, RobotFault
 
-COMMAND_MODES = ("velocity", "position")
+COMMAND_MODES = ("velocity", "position", "position_velocity")
 STALE_STATE_S = 0.02  # s: a robot state older than this steers no new motion (the supervisor's gap rule)
 # A dead or broken link: the robot object cannot be used again.
 _LINK_ERRORS = (franky.NetworkException, franky.ProtocolException, franky.IncompatibleVersionException)
@@ -272,8 +272,13 @@ class FrankaRobot(Robot):
             # runs out and the arm brakes; the caller's own state-age rule sees the same stale `t`.
             self.sends_withheld += 1
             return
-        motion = self._velocity_motion(q, now) if self.command_mode == "velocity" else \
-            franky.JointMotion(q, return_when_finished=False)
+        if self.command_mode == "velocity":
+            motion = self._velocity_motion(q, now)
+        elif self.command_mode == "position":
+            motion = franky.JointMotion(q, return_when_finished=False)
+        else:  # a target that is passed at the stream's velocity instead of stopped at
+            motion = franky.JointMotion(franky.JointState(q, self._stream_velocity(q, now)),
+                                        return_when_finished=False)
         try:
             robot.move(motion, asynchronous=True)
         except Exception as exc:  # noqa: BLE001
@@ -281,6 +286,12 @@ class FrankaRobot(Robot):
         self.motions_sent += 1
         self._last_send_t = now
         self._window = (now, q.copy())
+
+    def _stream_velocity(self, q: np.ndarray, now: float) -> np.ndarray:
+        """The target stream's velocity since the last send (zero when the stream restarts)."""
+        if self._window is None or now <= self._window[0]:
+            return np.zeros(N_JOINTS)
+        return (q - self._window[1]) / (now - self._window[0])
 
     def _velocity_motion(self, q: np.ndarray, now: float) -> franky.JointVelocityMotion:
         """Feed-forward velocity of the target stream plus a clipped proportional pull toward the target."""
@@ -290,11 +301,7 @@ class FrankaRobot(Robot):
         if abs(err[worst]) > self.max_tracking_error:
             raise RobotFault(f"joint {worst + 1} lags its target by {abs(err[worst]):.4f} rad "
                              f"(more than {self.max_tracking_error} rad)")
-        if self._window is None or now <= self._window[0]:
-            v_ff = np.zeros(N_JOINTS)
-        else:
-            v_ff = (q - self._window[1]) / (now - self._window[0])
-        v = v_ff + np.clip(self.gain * err, -self.max_correction, self.max_correction)
+        v = self._stream_velocity(q, now) + np.clip(self.gain * err, -self.max_correction, self.max_correction)
         v = np.clip(v, -self._v_max, self._v_max)
         return franky.JointVelocityMotion(v, duration=franky.Duration(int(round(self.deadman * 1000))))
 
