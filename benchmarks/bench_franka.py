@@ -72,7 +72,7 @@ def joint_move(kin: PandaKinematics, q0: np.ndarray, q1: np.ndarray, dt: float, 
 
 def stream(robot: FrankaRobot, qs: np.ndarray, dt: float, hold_s: float = 0.3, kill=None) -> dict:
     """Send `qs` one per `dt` on the real clock (state() then command() each tick); then hold the last target."""
-    t_cmd, states, late = [], [], 0
+    t_cmd, states, late, cost = [], [], 0, []
     n = len(qs) + int(hold_s / dt)
     t0 = time.monotonic()
     for k in range(n):
@@ -84,12 +84,14 @@ def stream(robot: FrankaRobot, qs: np.ndarray, dt: float, hold_s: float = 0.3, k
             late += 1
         if kill is not None and kill(k):
             kill = None
+        c0 = time.perf_counter()
         st = robot.state()
         q = qs[min(k, len(qs) - 1)]
         robot.command(q)
+        cost.append(time.perf_counter() - c0)
         t_cmd.append(time.monotonic())
         states.append((time.monotonic(), st))
-    return {"t_cmd": np.array(t_cmd), "states": states, "late": late, "qs": qs}
+    return {"t_cmd": np.array(t_cmd), "states": states, "late": late, "qs": qs, "cost": np.array(cost)}
 
 
 def lag_ms(run: dict, min_speed: float = 0.25) -> np.ndarray:
@@ -132,7 +134,7 @@ def go_to(robot: FrankaRobot, kin: PandaKinematics, q: np.ndarray, dt: float) ->
 
 def scheme_runs(host: str, kin: PandaKinematics, schemes: list[dict], arc: float, repeats: int) -> None:
     print(f"{'scheme':<44} {'lag p50 ms':>10} {'p99 ms':>8} {'final mrad':>10} {'over mrad':>9} "
-          f"{'motions':>7} {'late':>5} {'sim rt':>6} {'max age ms':>10}")
+          f"{'motions':>7} {'late':>5} {'sim rt':>6} {'max age ms':>10} {'tick us p50/p99':>16}")
     for spec in [dict(s) for s in schemes for _ in range(repeats)]:
         dt = spec.pop("dt")
         name = f"{spec['command_mode']} @{1 / dt:.0f} Hz ticks, send {1 / spec['send_period']:.0f} Hz" + (
@@ -153,12 +155,14 @@ def scheme_runs(host: str, kin: PandaKinematics, schemes: list[dict], arc: float
                 lag = lag_ms(run)
                 qf = run["states"][-1][1].q
                 age = max(t - st.t for t, st in run["states"]) * 1e3
+                c = run.get("cost")
+                tick = "-" if c is None else f"{np.median(c) * 1e6:.0f}/{np.percentile(c, 99) * 1e6:.0f}"
                 reported = np.array([st.q for _, st in run["states"]])
                 along = (reported - qs[0]) @ (qs[-1] - qs[0]) / np.linalg.norm(qs[-1] - qs[0])
                 over = max(0.0, along.max() - np.linalg.norm(qs[-1] - qs[0]))
                 print(f"{name:<44} {np.percentile(lag, 50):>10.1f} {np.percentile(lag, 99):>8.1f} "
                       f"{np.abs(qf - qs[-1]).max() * 1e3:>10.2f} {over * 1e3:>9.2f} {robot.motions_sent:>7d} "
-                      f"{run['late']:>5d} {robot_rate(run):>6.2f} {age:>10.1f}")
+                      f"{run['late']:>5d} {robot_rate(run):>6.2f} {age:>10.1f} {tick:>16}")
                 if not robot.closed:
                     robot.stop()
         except SupervisorError as exc:

@@ -228,6 +228,8 @@ def test_vendor_exceptions_become_ours_and_connecting_to_nothing_is_a_driver_err
     fault = _translate(franky.ControlException("joint_velocity_violation"), "sending")
     assert isinstance(fault, RobotFault) and "joint_velocity_violation" in str(fault)
     assert isinstance(_translate(franky.CommandException("refused"), "x"), RobotFault)
+    assert isinstance(_translate(RuntimeError("Net Exception"), "reading"), DriverError)  # a read on a dead link
+    assert isinstance(_translate(RuntimeError("Waypoint velocity exceeds maximum velocity"), "x"), RobotFault)
     with pytest.raises(DriverError, match="cannot connect") as info:
         FrankaRobot(kin, "127.0.0.79")  # nothing listens there
     assert isinstance(info.value.__cause__, franky.NetworkException)
