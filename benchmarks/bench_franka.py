@@ -244,6 +244,44 @@ def braking(host: str, kin: PandaKinematics, dt: float, repeats: int) -> None:
             del run
 
 
+def idle_reads(host: str, kin: PandaKinematics, n: int = 500) -> None:
+    print("\nstate() at rest, one read per ms:")
+    for hold in (True, False):
+        with FrankaRobot(kin, host, idle_hold=hold) as robot:
+            cost = []
+            for _ in range(n):
+                c0 = time.perf_counter()
+                robot.state()
+                cost.append(time.perf_counter() - c0)
+                time.sleep(0.001)
+            c = np.array(cost) * 1e6
+            print(f"  idle_hold={hold!s:<5}: median {np.median(c):.0f} us, p99 {np.percentile(c, 99):.0f} us, "
+                  f"max {c.max():.0f} us")
+
+
+def rest_link_loss(host: str, kin: PandaKinematics) -> None:
+    srv = FciServer(host)
+    gap = None
+    try:
+        robot = FrankaRobot(kin, host)
+        time.sleep(0.05)
+        srv.kill()
+        tk = time.monotonic()
+        while True:
+            try:
+                st = robot.state()
+            except SupervisorError as exc:
+                print(f"  at rest (idle hold): driver raised {type(exc).__name__} {(time.monotonic() - tk) * 1e3:.1f} "
+                      "ms after the kill")
+                break
+            if time.monotonic() - st.t > STATE_GAP and gap is None:
+                gap = time.monotonic()
+                print(f"  at rest (idle hold): caller's 20 ms age rule fired {(gap - tk) * 1e3:.1f} ms after the kill")
+            time.sleep(0.001)
+    finally:
+        srv.kill()
+
+
 def link_loss(host: str, kin: PandaKinematics, dt: float) -> None:
     print("\nlink loss: SIGKILL franky-sim mid-motion, state() and command() every tick")
     srv = FciServer(host)
@@ -345,7 +383,9 @@ def main() -> int:
         scheme_runs(a.host, kin, schemes, a.arc_deg * DEG, a.repeats)
         braking(a.host, kin, 0.001, a.brakes)
         cross_check(a.host, kin, 0.001)
+        idle_reads(a.host, kin)
     link_loss(a.host, kin, 0.001)
+    rest_link_loss(a.host, kin)
     return 0
 
 

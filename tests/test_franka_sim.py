@@ -150,7 +150,7 @@ def test_stop_brakes_forward_from_the_current_state_and_rests(robot, kin):
     assert travelled > 0  # brakes forward; never returns to an earlier point
     assert np.abs(end.dq[:6]).max() < 0.02  # at rest (franky-sim's joint 7 chatters at ~0.08 rad/s)
     assert (end.q - q0) @ (qs[-1] - q0) < (qs[-1] - q0) @ (qs[-1] - q0)  # stopped short of the target
-    assert states and not robot._robot.is_in_control
+    assert states and robot.holding  # held at rest by a zero-velocity motion
 
 
 def test_commands_that_stop_coming_let_the_arm_brake_by_itself(robot):
@@ -201,20 +201,26 @@ def test_killed_server_is_noticed_by_state_age_then_raises_and_a_new_robot_objec
         drv.state()
 
 
-def test_state_age_grows_once_the_controller_is_gone(kin):
-    """Mid-motion the robot state is franky's cached control-loop sample: frozen robot time keeps t old."""
+@pytest.mark.parametrize("moving", [True, False], ids=["moving", "at rest"])
+def test_state_age_grows_once_the_controller_is_gone(kin, moving):
+    """The robot state is franky's cached control-loop sample (in motion, and held at rest):
+    a frozen robot time keeps t old, and no read blocks on the dead link."""
     with FciServer("127.0.0.73") as srv:
         drv = FrankaRobot(kin, "127.0.0.73", control_period=DT, link_timeout=0.5)
         q = drv.state().q
-        for k in range(50):
+        for k in range(50 if moving else 0):
             drv.state()
             drv.command(q + np.r_[0.1 * k * DT, np.zeros(6)])
             time.sleep(DT)
+        assert drv.holding is not moving
+        time.sleep(0.01)
         srv.kill()
         t_kill = time.monotonic()
         ages = []
         while time.monotonic() - t_kill < 0.05:
+            c0 = time.monotonic()
             st = drv.state()
+            assert time.monotonic() - c0 < 0.01  # a cache read, not a wait for the next packet
             ages.append(time.monotonic() - st.t)
             time.sleep(DT)
         assert st.t <= t_kill + 0.005  # the last fresh state arrived before the kill

@@ -22,7 +22,9 @@ own staleness rule (20 ms) fires long before libfranka's ~1 s network timeout.
 `seq` is the controller's millisecond counter and `robot_time` its time (s).
 After `link_timeout` without a fresh state, `state()` raises DriverError and the
 robot object is dead; `reconnect()` (or `recover()`) connects a new one.
-`T_base_flange` comes from our kinematic model; `reported_T_base_flange()` is
+At rest the driver keeps a zero-velocity motion running (`idle_hold`), so the
+same holds while the arm waits and a state read never becomes libfranka's
+blocking `readOnce`. `T_base_flange` comes from our kinematic model; `reported_T_base_flange()` is
 the controller's own (franky's `O_T_EE` times the inverse of its `F_T_EE`).
 
 Errors. franky/libfranka exceptions are translated here: a lost or broken link
@@ -46,6 +48,7 @@ from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, R
 
 COMMAND_MODES = ("velocity", "position", "position_velocity")
 STALE_STATE_S = 0.02  # s: a robot state older than this steers no new motion (the supervisor's gap rule)
+HOLD_MS = 24 * 3600 * 1000  # the idle hold's duration (a zero-velocity motion)
 # A dead or broken link: the robot object cannot be used again.
 _LINK_ERRORS = (franky.NetworkException, franky.ProtocolException, franky.IncompatibleVersionException)
 PANDA_HINT = (
@@ -94,6 +97,7 @@ class FrankaRobot(Robot):
         link_timeout: float = 0.2,
         relative_dynamics_factor: float = 1.0,
         realtime: bool | None = None,
+        idle_hold: bool = True,
         clock: Clock | None = None,
     ) -> None:
         if command_mode not in COMMAND_MODES:
@@ -121,6 +125,8 @@ class FrankaRobot(Robot):
         self.link_timeout = float(link_timeout)
         self.relative_dynamics_factor = float(relative_dynamics_factor)
         self.realtime = realtime_kernel() if realtime is None else bool(realtime)
+        self.idle_hold = bool(idle_hold) and command_mode == "velocity"
+        self._holding = False
         self._period = float(control_period)
         self._v_max = kin.dq_max * relative_dynamics_factor
         self.motions_sent = 0
@@ -141,6 +147,7 @@ class FrankaRobot(Robot):
                                 (robot.joint_acceleration_limit, self.kin.ddq_max),
                                 (robot.joint_jerk_limit, self.kin.dddq_max)):
                 limit.set(np.minimum(ours, np.asarray(limit.max, dtype=float)).tolist())
+            self._hold(robot)
         except franky.IncompatibleVersionException as exc:
             raise DriverUnavailable(f"robot at {self.host}: {exc}; {PANDA_HINT}") from exc
         except franky.RealtimeException as exc:
@@ -233,8 +240,10 @@ class FrankaRobot(Robot):
             raise ValueError(f"speed must be in (0, 1], got {speed}")
         self._reset_stream()
         try:
+            self._brake(robot)  # ends the idle hold: a position motion cannot take over a velocity one
             robot.move(franky.JointMotion(np.asarray(q, dtype=float), relative_dynamics_factor=speed),
                        asynchronous=False)
+            self._hold(robot)
         except Exception as exc:  # noqa: BLE001
             raise self._fail(exc, "the point-to-point move") from exc
 
@@ -284,6 +293,7 @@ class FrankaRobot(Robot):
         except Exception as exc:  # noqa: BLE001
             raise self._fail(exc, "sending the joint command") from exc
         self.motions_sent += 1
+        self._holding = False
         self._last_send_t = now
         self._window = (now, q.copy())
 
@@ -310,14 +320,32 @@ class FrankaRobot(Robot):
         robot = self._live()
         self._reset_stream()
         try:
+            if self._holding and robot.is_in_control:
+                return  # already at rest, held
             self._brake(robot)
+            self._hold(robot)
         except Exception as exc:  # noqa: BLE001
             raise self._fail(exc, "the controlled stop") from exc
 
+    @property
+    def holding(self) -> bool:
+        """True while the idle hold (a zero-velocity motion) keeps the arm at rest."""
+        return self._holding
+
     def _brake(self, robot: franky.Robot) -> None:
+        self._holding = False
         if robot.is_in_control:
             stop = franky.JointVelocityStopMotion() if self.command_mode == "velocity" else franky.JointStopMotion()
             robot.move(stop, asynchronous=False)
+
+    def _hold(self, robot: franky.Robot) -> None:
+        """At rest, keep a zero-velocity motion running (`idle_hold`): state reads then stay reads of the
+        control loop's latest sample (us, not libfranka's blocking readOnce of up to a packet period), and a
+        controller that dies while the arm rests freezes the state within a tick, as in motion."""
+        if self.idle_hold:
+            robot.move(franky.JointVelocityMotion(np.zeros(N_JOINTS), duration=franky.Duration(HOLD_MS)),
+                       asynchronous=True)
+            self._holding = True
 
     def recover(self) -> None:
         """Clear a robot error (franky `recover_from_errors`); after a lost link, connect a new robot object."""
@@ -332,6 +360,10 @@ class FrankaRobot(Robot):
         if ok is False:
             raise RobotFault(f"the robot at {self.host} did not recover from its errors")
         self._reset_stream()
+        try:
+            self._hold(self._robot)
+        except Exception as exc:  # noqa: BLE001
+            raise self._fail(exc, "holding after recovery") from exc
 
     def _close(self) -> None:
         # Let the arm come to rest; closing must not raise (the arm's own reflexes still apply).
