@@ -377,7 +377,7 @@ def main() -> int:
     vel = [dict(dt=dt, command_mode="velocity", send_period=sp, gain=g)
            for dt, sp, g in [(0.001, 0.01, 50.0), (0.004, 0.01, 50.0), (0.004, 0.004, 50.0), (0.001, 0.004, 50.0),
                              (0.001, 0.02, 25.0), (0.001, 0.01, 25.0), (0.001, 0.01, 80.0), (0.001, 0.001, 20.0)]]
-    schemes = [base[0], vel[3]] if a.quick else base + vel
+    schemes = [base[0], vel[0]] if a.quick else base + vel
     with FciServer(a.host) as srv:
         print(f"franky-sim on {a.host} ready in {srv.startup_s:.1f} s; arc {a.arc_deg} deg")
         scheme_runs(a.host, kin, schemes, a.arc_deg * DEG, a.repeats)

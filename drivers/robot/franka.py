@@ -7,13 +7,14 @@ Commands. The supervisor streams one joint-position target per tick; franky does
 not take raw 1 kHz positions from Python, so the driver turns the stream into
 franky motions. Measured on franky-sim (benchmarks/bench_franka.py, README "Franka driver"):
 preempting the running motion with a new `JointMotion(q)` every tick (the
-earlier design, `command_mode="position"`) lags the supervisor's arc by 0.3-0.4 s
+earlier design, `command_mode="position"`) lags the supervisor's arc by 0.26-0.43 s
 (p50), because each new motion plans to come to rest at its target. The default
-`command_mode="velocity"` instead sends, every `send_period` (4 ms), a
+`command_mode="velocity"` instead sends, every `send_period` (10 ms), a
 `JointVelocityMotion` of the target stream's own velocity plus `gain` (50/s) x
-(target - measured position), held for `deadman` seconds: 4-14 ms p50 lag, and an
-arm whose commands stop coming (a hung supervisor) brakes to rest by itself once
-`deadman` runs out.
+(target - measured position), held for `deadman` seconds: 9-13 ms p50 lag, the
+end passed by <= 0.2 mrad (sending every 4 ms, or a gain of 80/s, rang under load:
+up to 4-5 mrad), and an arm whose commands stop coming (a hung supervisor) brakes
+to rest by itself once `deadman` runs out.
 
 State. `t` is the supervisor-clock time at which the current robot state first
 arrived: franky's `state` is the control loop's latest sample, which freezes when
@@ -89,7 +90,7 @@ class FrankaRobot(Robot):
         *,
         control_period: float = 0.001,
         command_mode: str = "velocity",
-        send_period: float = 0.004,
+        send_period: float = 0.01,
         gain: float = 50.0,
         max_correction: float = 0.5,
         deadman: float = 0.05,
