@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from supervisor.arm.limits import ARMS
 from supervisor.camera_model import Intrinsics
 from supervisor.errors import ConfigError
 from supervisor.geometry import transform_from_config
@@ -33,6 +34,8 @@ class RobotConfig:
     urdf: Path | None
     control_period_s: float
     q_start: np.ndarray  # rad
+    arm: str = "panda"  # panda | fr3: the joint-limit table (supervisor/arm/limits.py)
+    host: str | None = None  # the controller's FCI address (robot driver franka)
 
 
 @dataclass(frozen=True)
@@ -137,7 +140,17 @@ def _robot(n: Node, file: Path) -> RobotConfig:
         urdf=urdf_path,
         control_period_s=1.0 / n.number("control_rate_hz", 1000.0, min=10.0, max=10000.0),
         q_start=np.radians(q),
+        arm=n.string("arm", "panda", choices=tuple(ARMS)),
+        host=n.optional_string("host"),
     )
+    lim = ARMS[out.arm]
+    outside = (out.q_start < lim.q_min) | (out.q_start > lim.q_max)
+    if np.any(outside):
+        j = int(np.argmax(outside))
+        raise n.error("q_start_deg", f"joint {j + 1} at {q[j]:g} deg is outside the {out.arm}'s range "
+                                     f"[{np.degrees(lim.q_min[j]):.2f}, {np.degrees(lim.q_max[j]):.2f}] deg")
+    if out.driver == "franka" and out.host is None:
+        raise n.error("host", "robot driver franka needs the controller's address (e.g. 172.16.0.2)")
     n.done()
     return out
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 
 import numpy as np
@@ -188,8 +187,11 @@ def test_sim_driver_is_registered_and_drives_the_robot(kin):
         ROBOTS.load("ur5")
 
 
-@pytest.mark.skipif(importlib.util.find_spec("franky") is not None, reason="franky is installed")
-def test_franka_driver_without_franky_names_the_extra():
+def test_franka_driver_without_franky_names_the_extra(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "franky", None)  # as on a machine without the extra: import fails
+    monkeypatch.delitem(sys.modules, "drivers.robot.franka", raising=False)
     with pytest.raises(DriverUnavailable, match=r"\[franka\]"):
         ROBOTS.load("franka")
     assert "franka" in ROBOTS.names() and ROBOTS.entry("franka").extra == "franka"

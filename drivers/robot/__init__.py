@@ -7,6 +7,6 @@ ROBOTS = DriverRegistry(
     {
         "sim": DriverEntry("drivers.robot.sim", "SimRobotDriver", doc="kinematic Panda in simulated time"),
         "franka": DriverEntry("drivers.robot.franka", "FrankaRobot", extra="franka",
-                              doc="Franka Panda through franky (libfranka); untested on hardware"),
+                              doc="Franka Panda/FR3 through franky (libfranka); tested against franky-sim, not on hardware"),
     },
 )

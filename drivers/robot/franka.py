@@ -1,22 +1,45 @@
-"""Franka Emika Panda through franky (libfranka), the optional extra `franka`.
+"""A Franka arm through franky (libfranka), the optional extra `franka`.
 
-NOT VALIDATED ON HARDWARE: a skeleton that maps our `Robot` interface onto
-franky's Python API as documented (franky-control >= 0.9): `franky.Robot(host)`,
-`recover_from_errors()`, `relative_dynamics_factor`, `current_joint_state`
-(`.position`, `.velocity`), `move(motion, asynchronous=True)`, `JointMotion`,
-`JointStopMotion`. It adds no behaviour of its own beyond our limit checks.
+Tested end to end against franky-sim (a simulated FR3 speaking libfranka's FCI
+protocol, tests/test_franka_sim.py); not yet run on a physical arm.
 
-How it differs from the sim: franky does not stream raw 1 kHz joint positions
-from Python. Each `command(q)` preempts the running motion with an asynchronous
-`JointMotion(q)`, which franky's own Ruckig generator tracks at 1 kHz within the
-relative dynamics factor; the arm therefore lags the commands by some ticks.
-`stop()` sends `JointStopMotion` and waits for it; franky's stop brakes from
-the current state (it does not return to an earlier commanded point).
+Commands. The supervisor streams one joint-position target per tick; franky does
+not take raw 1 kHz positions from Python, so the driver turns the stream into
+franky motions. Measured on franky-sim (benchmarks/bench_franka.py, README "Franka driver"):
+preempting the running motion with a new `JointMotion(q)` every tick (the
+earlier design, `command_mode="position"`) lags the supervisor's arc by 0.26-0.43 s
+(p50), because each new motion plans to come to rest at its target. The default
+`command_mode="velocity"` instead sends, every `send_period` (10 ms), a
+`JointVelocityMotion` of the target stream's own velocity plus `gain` (50/s) x
+(target - measured position), held for `deadman` seconds: 9-13 ms p50 lag, the
+end passed by <= 0.2 mrad (sending every 4 ms, or a gain of 80/s, rang under load:
+up to 4-5 mrad), and an arm whose commands stop coming (a hung supervisor) brakes
+to rest by itself once `deadman` runs out.
+
+State. `t` is the supervisor-clock time at which the current robot state first
+arrived: franky's `state` is the control loop's latest sample, which freezes when
+the controller goes away, so a frozen robot time keeps `t` old and the caller's
+own staleness rule (20 ms) fires long before libfranka's ~1 s network timeout.
+`seq` is the controller's millisecond counter and `robot_time` its time (s).
+After `link_timeout` without a fresh state, `state()` raises DriverError and the
+robot object is dead; `reconnect()` (or `recover()`) connects a new one.
+At rest the driver keeps a zero-velocity motion running (`idle_hold`), so the
+same holds while the arm waits and a state read never becomes libfranka's
+blocking `readOnce`. `T_base_flange` comes from our kinematic model; `reported_T_base_flange()` is
+the controller's own (franky's `O_T_EE` times the inverse of its `F_T_EE`).
+
+Errors. franky/libfranka exceptions are translated here: a lost or broken link
+(NetworkException, ProtocolException, ...) becomes DriverError, a refused motion
+or a reflex (ControlException, CommandException, ...) RobotFault, both chained.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+import franky
 
 from drivers.robot.base import Robot
 from supervisor.arm.kinematics import N_JOINTS, PandaKinematics
@@ -24,62 +47,219 @@ from supervisor.arm.state import RobotState
 from supervisor.clock import Clock, MonotonicClock
 from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, RobotFault
 
-try:
-    import franky
-except ImportError as exc:  # the registry imports this module only when 'franka' is selected
-    raise DriverUnavailable(
-        "robot driver 'franka' needs the franky library (libfranka bindings), which is not installed; "
-        "install it with: pip install 'panda-localization-supervisor[franka]' "
-        "(pip install franky-control; pick the wheel matching the robot's libfranka/system version)"
-    ) from exc
+COMMAND_MODES = ("velocity", "position", "position_velocity")
+STALE_STATE_S = 0.02  # s: a robot state older than this steers no new motion (the supervisor's gap rule)
+HOLD_MS = 24 * 3600 * 1000  # the idle hold's duration (a zero-velocity motion)
+# A dead or broken link: the robot object cannot be used again.
+_LINK_ERRORS = (franky.NetworkException, franky.ProtocolException, franky.IncompatibleVersionException)
+PANDA_HINT = (
+    "franky-control 2.x bundles libfranka 0.21 (the FR3's protocol); a Panda (FER) needs libfranka 0.9.x: "
+    "install franky built against libfranka 0.9.2 (see the README, 'Franka driver')"
+)
 
-LIBFRANKA_PERIOD = 0.001  # s, libfranka's control rate
+
+def realtime_kernel() -> bool:
+    """True on a PREEMPT_RT kernel (libfranka's real-time requirement)."""
+    try:
+        return Path("/sys/kernel/realtime").read_text().strip() == "1"
+    except OSError:
+        return False
+
+
+def _translate(exc: BaseException, what: str) -> DriverError | RobotFault:
+    """Our error for a franky/libfranka exception raised while doing `what`."""
+    text = f"{what}: {type(exc).__name__}: {exc}"
+    if isinstance(exc, _LINK_ERRORS) or (isinstance(exc, RuntimeError) and "Net" in str(exc)):
+        return DriverError(f"{text} (the connection to the robot is lost)")
+    return RobotFault(text)
 
 
 class FrankaRobot(Robot):
-    """A real Panda: joint-position targets through franky, state from its joint-state read-out.
+    """A Franka Panda or FR3 behind franky: joint targets in, stamped joint state out.
 
-    `kin` gives the joint limits we enforce before anything reaches the robot and
-    the flange pose reported in `RobotState` (so sim and hardware share one model).
-    `t` in the state is the injected host clock; `seq` counts state reads.
+    `kin` (built with the right `arm`) gives the limits checked before anything
+    reaches the robot and the flange pose in the state. `control_period` is the
+    supervisor's tick (the robot itself runs at 1 kHz). See the module docstring
+    for the command scheme and its parameters.
     """
 
-    def __init__(self, kin: PandaKinematics, host: str, *, relative_dynamics_factor: float = 0.1,
-                 clock: Clock | None = None) -> None:
+    def __init__(
+        self,
+        kin: PandaKinematics,
+        host: str,
+        *,
+        control_period: float = 0.001,
+        command_mode: str = "velocity",
+        send_period: float = 0.01,
+        gain: float = 50.0,
+        max_correction: float = 0.5,
+        deadman: float = 0.05,
+        max_tracking_error: float = 0.05,
+        link_timeout: float = 0.2,
+        relative_dynamics_factor: float = 1.0,
+        realtime: bool | None = None,
+        idle_hold: bool = True,
+        clock: Clock | None = None,
+    ) -> None:
+        if command_mode not in COMMAND_MODES:
+            raise ValueError(f"command_mode must be one of {COMMAND_MODES}, got {command_mode!r}")
+        for name, value in (("control_period", control_period), ("send_period", send_period),
+                            ("deadman", deadman), ("link_timeout", link_timeout),
+                            ("max_tracking_error", max_tracking_error)):
+            if not np.isfinite(value) or value <= 0:
+                raise ValueError(f"{name} must be a positive number of seconds/radians, got {value}")
+        if deadman <= send_period:
+            raise ValueError(f"deadman ({deadman} s) must outlast send_period ({send_period} s)")
         if not 0 < relative_dynamics_factor <= 1:
             raise ValueError(f"relative_dynamics_factor must be in (0, 1], got {relative_dynamics_factor}")
+        if gain < 0 or max_correction < 0:
+            raise ValueError("gain and max_correction must be non-negative")
         self.kin = kin
+        self.host = host
         self.clock: Clock = clock or MonotonicClock()
-        self._seq = 0
+        self.command_mode = command_mode
+        self.send_period = float(send_period)
+        self.gain = float(gain)
+        self.max_correction = float(max_correction)
+        self.deadman = float(deadman)
+        self.max_tracking_error = float(max_tracking_error)
+        self.link_timeout = float(link_timeout)
+        self.relative_dynamics_factor = float(relative_dynamics_factor)
+        self.realtime = realtime_kernel() if realtime is None else bool(realtime)
+        self.idle_hold = bool(idle_hold) and command_mode == "velocity"
+        self._holding = False
+        self._period = float(control_period)
+        self._v_max = kin.dq_max * relative_dynamics_factor
+        self.motions_sent = 0
+        self.sends_withheld = 0  # targets not sent because the robot state was stale
+        self._robot: franky.Robot | None = None
+        self._connect()
+
+    # -- connection ------------------------------------------------------------
+    def _connect(self) -> None:
+        rt = franky.RealtimeConfig.Enforce if self.realtime else franky.RealtimeConfig.Ignore
+        try:
+            robot = franky.Robot(self.host, relative_dynamics_factor=self.relative_dynamics_factor,
+                                 realtime_config=rt)
+            robot.recover_from_errors()
+            # franky plans its motions (and its stop) within these; franky-control 2.0 defaults to the
+            # Panda's table on any arm, so an FR3 gets its own, lower, acceleration and jerk limits.
+            for limit, ours in ((robot.joint_velocity_limit, self.kin.dq_max),
+                                (robot.joint_acceleration_limit, self.kin.ddq_max),
+                                (robot.joint_jerk_limit, self.kin.dddq_max)):
+                limit.set(np.minimum(ours, np.asarray(limit.max, dtype=float)).tolist())
+            self._hold(robot)
+        except franky.IncompatibleVersionException as exc:
+            raise DriverUnavailable(f"robot at {self.host}: {exc}; {PANDA_HINT}") from exc
+        except franky.RealtimeException as exc:
+            raise DriverUnavailable(f"robot at {self.host}: {exc} (run on a PREEMPT_RT kernel, "
+                                    "or pass realtime=False off one, for a simulator only)") from exc
+        except Exception as exc:  # noqa: BLE001 - vendor errors are translated at the driver boundary
+            raise DriverError(f"cannot connect to the robot at {self.host}: {type(exc).__name__}: {exc}") from exc
+        self._robot = robot
+        self._raw: franky.RobotState | None = None
+        self._last_rt_ms: int | None = None
+        self._fresh_t: float | None = None
+        self._meas: tuple[float, np.ndarray] | None = None  # (arrival t, q) of the last fresh state
+        self._reset_stream()
+
+    def _reset_stream(self) -> None:
         self._last_cmd: np.ndarray | None = None
         self._last_cmd_t: float | None = None
+        self._window: tuple[float, np.ndarray] | None = None  # (t, q) of the target at the last send
+        self._last_send_t: float | None = None
+
+    @property
+    def connected(self) -> bool:
+        """False once the link is known dead (then only `reconnect()` helps)."""
+        return self._robot is not None
+
+    def _live(self) -> franky.Robot:
+        self._check_open()
+        if self._robot is None:
+            raise DriverError(f"the connection to the robot at {self.host} is lost; reconnect() to resume")
+        return self._robot
+
+    def _fail(self, exc: BaseException, what: str) -> DriverError | RobotFault:
+        err = _translate(exc, what)
+        if isinstance(err, DriverError):
+            self._robot = None  # libfranka's robot object is dead after a network error
+        return err
+
+    def reconnect(self) -> None:
+        """Drop the robot object and connect a new one (libfranka's objects do not survive a lost link)."""
+        self._check_open()
+        self._robot = None
+        self._connect()
+
+    # -- interface ---------------------------------------------------------------
+    @classmethod
+    def from_config(cls, cfg, *, kin: PandaKinematics, clock: Clock, **_: object) -> FrankaRobot:
+        """The configured arm (`robot.host`, `robot.control_rate_hz`), moved to `robot.q_start_deg`."""
+        robot = cls(kin, cfg.robot.host, control_period=cfg.robot.control_period_s, clock=clock)
         try:
-            self._robot = franky.Robot(host)
-            self._robot.recover_from_errors()
-            self._robot.relative_dynamics_factor = relative_dynamics_factor
-        except Exception as exc:  # noqa: BLE001 - vendor errors are translated at the driver boundary
-            raise DriverError(f"cannot connect to the Panda at {host}: {exc}") from exc
+            robot.move_to(cfg.robot.q_start)
+        except BaseException:
+            robot.close()
+            raise
+        return robot
 
     @property
     def control_period(self) -> float:
-        return LIBFRANKA_PERIOD
+        return self._period
 
     def state(self) -> RobotState:
-        self._check_open()
+        robot = self._live()
         try:
-            js = self._robot.current_joint_state
-            q = np.array(js.position, dtype=float)
-            dq = np.array(js.velocity, dtype=float)
+            raw = robot.state
         except Exception as exc:  # noqa: BLE001
-            raise DriverError(f"reading the robot state failed: {exc}") from exc
-        if q.shape != (N_JOINTS,):
-            raise DriverError(f"robot reported {q.shape} joint positions, expected 7")
-        self._seq += 1
-        return RobotState(self.clock.now(), self._seq, q, dq, self.kin.fk(q, "flange"))
+            raise self._fail(exc, "reading the robot state") from exc
+        now = self.clock.now()
+        rt_ms = int(raw.time.to_msec())
+        if self._last_rt_ms is None or rt_ms != self._last_rt_ms:
+            if self._last_rt_ms is not None and rt_ms < self._last_rt_ms:
+                self._robot = None
+                raise DriverError(f"robot time went backwards ({self._last_rt_ms} -> {rt_ms} ms)")
+            self._last_rt_ms, self._fresh_t = rt_ms, now
+            self._raw = raw
+        elif now - self._fresh_t > self.link_timeout:
+            self._robot = None
+            raise DriverError(f"no fresh robot state for {(now - self._fresh_t) * 1000:.0f} ms "
+                              f"(robot time stuck at {rt_ms} ms): the controller at {self.host} is gone")
+        raw = self._raw
+        q = np.array(raw.q, dtype=float)
+        dq = np.array(raw.dq, dtype=float)
+        if q.shape != (N_JOINTS,) or not np.all(np.isfinite(q)) or not np.all(np.isfinite(dq)):
+            raise DriverError(f"robot reported an invalid joint state: q={q!r}")
+        self._meas = (self._fresh_t, q)
+        return RobotState(self._fresh_t, rt_ms, q, dq, self.kin.fk(q, "flange"), robot_time=rt_ms / 1000.0)
 
-    def command(self, q: np.ndarray) -> None:
-        """Check `q` against position limits and the velocity implied since the last command, then send it."""
-        self._check_open()
+    def reported_T_base_flange(self) -> np.ndarray:
+        """The controller's own flange pose at the last state (franky's O_T_EE * F_T_EE^-1)."""
+        if self._raw is None:
+            self.state()
+        raw = self._raw
+        return np.asarray(raw.O_T_EE.matrix) @ np.linalg.inv(np.asarray(raw.F_T_EE.matrix))
+
+    def move_to(self, q: np.ndarray, speed: float = 0.2) -> None:
+        """Blocking point-to-point move to `q` with franky's own planner at `speed` x the limits.
+
+        For setup moves at rest (e.g. to the start posture), never inside the supervised loop.
+        """
+        robot = self._live()
+        self._check_position(q)
+        if not 0 < speed <= 1:
+            raise ValueError(f"speed must be in (0, 1], got {speed}")
+        self._reset_stream()
+        try:
+            self._brake(robot)  # ends the idle hold: a position motion cannot take over a velocity one
+            robot.move(franky.JointMotion(np.asarray(q, dtype=float), relative_dynamics_factor=speed),
+                       asynchronous=False)
+            self._hold(robot)
+        except Exception as exc:  # noqa: BLE001
+            raise self._fail(exc, "the point-to-point move") from exc
+
+    def _check_position(self, q: np.ndarray) -> np.ndarray:
         q = np.asarray(q, dtype=float)
         if q.shape != (N_JOINTS,) or not np.all(np.isfinite(q)):
             raise JointLimitError(0, float("nan"), float("nan"), f"command (not 7 finite angles: {q!r})")
@@ -88,39 +268,121 @@ class FrankaRobot(Robot):
             j = int(np.argmax(low | high))
             raise JointLimitError(j, float(q[j]), float(self.kin.q_min[j] if low[j] else self.kin.q_max[j]),
                                   "position")
+        return q
+
+    def command(self, q: np.ndarray) -> None:
+        """Check `q` against the position limits and the velocity implied since the last target, then track it."""
+        robot = self._live()
+        q = self._check_position(q)
         now = self.clock.now()
-        if self._last_cmd is not None and self._last_cmd_t is not None:
-            period = max(now - self._last_cmd_t, LIBFRANKA_PERIOD)
-            v = (q - self._last_cmd) / period
+        if self._last_cmd is not None and now - self._last_cmd_t > 3 * self._period + self.send_period:
+            self._reset_stream()  # a pause in the stream: restart the velocity estimate from rest
+        if self._last_cmd is not None:
+            v = (q - self._last_cmd) / max(now - self._last_cmd_t, self._period)
             fast = np.abs(v) > self.kin.dq_max
             if np.any(fast):
                 j = int(np.argmax(fast))
                 raise JointLimitError(j, float(v[j]), float(np.sign(v[j]) * self.kin.dq_max[j]), "velocity")
-        try:
-            self._robot.move(franky.JointMotion(q.tolist()), asynchronous=True)
-        except Exception as exc:  # noqa: BLE001
-            raise RobotFault(f"the robot refused the joint command: {exc}") from exc
         self._last_cmd, self._last_cmd_t = q.copy(), now
+        if self._last_send_t is not None and now - self._last_send_t < self.send_period:
+            return
+        if self._meas is None or now - self._meas[0] > 2 * self._period + 0.002:
+            self.state()  # the caller did not read the state this tick: steer by a fresh one
+        if now - self._fresh_t > STALE_STATE_S:
+            # No fresh state to steer by: send nothing, so the running velocity motion's dead-man hold
+            # runs out and the arm brakes; the caller's own state-age rule sees the same stale `t`.
+            self.sends_withheld += 1
+            return
+        if self.command_mode == "velocity":
+            motion = self._velocity_motion(q, now)
+        elif self.command_mode == "position":
+            motion = franky.JointMotion(q, return_when_finished=False)
+        else:  # a target that is passed at the stream's velocity instead of stopped at
+            motion = franky.JointMotion(franky.JointState(q, self._stream_velocity(q, now)),
+                                        return_when_finished=False)
+        try:
+            robot.move(motion, asynchronous=True)
+        except Exception as exc:  # noqa: BLE001
+            raise self._fail(exc, "sending the joint command") from exc
+        self.motions_sent += 1
+        self._holding = False
+        self._last_send_t = now
+        self._window = (now, q.copy())
+
+    def _stream_velocity(self, q: np.ndarray, now: float) -> np.ndarray:
+        """The target stream's velocity since the last send (zero when the stream restarts)."""
+        if self._window is None or now <= self._window[0]:
+            return np.zeros(N_JOINTS)
+        return (q - self._window[1]) / (now - self._window[0])
+
+    def _velocity_motion(self, q: np.ndarray, now: float) -> franky.JointVelocityMotion:
+        """Feed-forward velocity of the target stream plus a clipped proportional pull toward the target."""
+        q_meas = self._meas[1]
+        err = q - q_meas
+        worst = int(np.argmax(np.abs(err)))
+        if abs(err[worst]) > self.max_tracking_error:
+            raise RobotFault(f"joint {worst + 1} lags its target by {abs(err[worst]):.4f} rad "
+                             f"(more than {self.max_tracking_error} rad)")
+        v = self._stream_velocity(q, now) + np.clip(self.gain * err, -self.max_correction, self.max_correction)
+        v = np.clip(v, -self._v_max, self._v_max)
+        return franky.JointVelocityMotion(v, duration=franky.Duration(int(round(self.deadman * 1000))))
 
     def stop(self) -> None:
-        self._check_open()
+        """Brake to rest from the current motion state (franky's stop motion) and wait until at rest."""
+        robot = self._live()
+        self._reset_stream()
         try:
-            self._robot.move(franky.JointStopMotion(), asynchronous=False)
+            if self._holding and robot.is_in_control:
+                return  # already at rest, held
+            self._brake(robot)
+            self._hold(robot)
         except Exception as exc:  # noqa: BLE001
-            raise RobotFault(f"the controlled stop failed: {exc}") from exc
-        self._last_cmd = self._last_cmd_t = None
+            raise self._fail(exc, "the controlled stop") from exc
+
+    @property
+    def holding(self) -> bool:
+        """True while the idle hold (a zero-velocity motion) keeps the arm at rest."""
+        return self._holding
+
+    def _brake(self, robot: franky.Robot) -> None:
+        self._holding = False
+        if robot.is_in_control:
+            stop = franky.JointVelocityStopMotion() if self.command_mode == "velocity" else franky.JointStopMotion()
+            robot.move(stop, asynchronous=False)
+
+    def _hold(self, robot: franky.Robot) -> None:
+        """At rest, keep a zero-velocity motion running (`idle_hold`): state reads then stay reads of the
+        control loop's latest sample (us, not libfranka's blocking readOnce of up to a packet period), and a
+        controller that dies while the arm rests freezes the state within a tick, as in motion."""
+        if self.idle_hold:
+            robot.move(franky.JointVelocityMotion(np.zeros(N_JOINTS), duration=franky.Duration(HOLD_MS)),
+                       asynchronous=True)
+            self._holding = True
 
     def recover(self) -> None:
-        """Clear a robot error (franky `recover_from_errors`) so commands are accepted again."""
+        """Clear a robot error (franky `recover_from_errors`); after a lost link, connect a new robot object."""
         self._check_open()
+        if self._robot is None:
+            self._connect()
+            return
         try:
-            self._robot.recover_from_errors()
+            ok = self._robot.recover_from_errors()
         except Exception as exc:  # noqa: BLE001
-            raise DriverError(f"error recovery failed: {exc}") from exc
+            raise self._fail(exc, "error recovery") from exc
+        if ok is False:
+            raise RobotFault(f"the robot at {self.host} did not recover from its errors")
+        self._reset_stream()
+        try:
+            self._hold(self._robot)
+        except Exception as exc:  # noqa: BLE001
+            raise self._fail(exc, "holding after recovery") from exc
 
     def _close(self) -> None:
-        # franky holds no session to release beyond the Robot object; let the arm come to rest first.
-        try:
-            self._robot.move(franky.JointStopMotion(), asynchronous=False)
-        except Exception:  # noqa: BLE001,S110 - closing must not raise; the arm's reflexes still apply
-            pass
+        # Let the arm come to rest; closing must not raise (the arm's own reflexes still apply).
+        if self._robot is not None:
+            try:
+                self._brake(self._robot)
+            except Exception:  # noqa: BLE001,S110
+                pass
+        self._robot = None
+

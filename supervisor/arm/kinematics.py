@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from supervisor.arm.limits import PANDA, arm_limits
 from supervisor.errors import DriverError, DriverUnavailable, KinematicsError
 from supervisor.geometry import validate_T
 
@@ -37,12 +38,12 @@ FRAMES = ("flange", "camera", "tcp")
 _RESTARTS_NEAR = 6  # ik_or_raise: restarts from perturbations of the seed (+-0.4 rad)
 _RESTARTS_ANYWHERE = 8  # ... then from uniform samples of the joint range
 
-# Franka Emika Panda datasheet limits (rad, rad/s, rad/s^2, rad/s^3).
-DATASHEET_Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
-DATASHEET_Q_MAX = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
-DATASHEET_DQ_MAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
-DATASHEET_DDQ_MAX = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
-DATASHEET_DDDQ_MAX = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
+# Franka Emika Panda datasheet limits (rad, rad/s, rad/s^2, rad/s^3); other arms: supervisor/arm/limits.py.
+DATASHEET_Q_MIN = PANDA.q_min
+DATASHEET_Q_MAX = PANDA.q_max
+DATASHEET_DQ_MAX = PANDA.dq_max
+DATASHEET_DDQ_MAX = PANDA.ddq_max
+DATASHEET_DDDQ_MAX = PANDA.dddq_max
 
 # libfranka's "ready" posture: flange about 0.31 m in front of the base, 0.59 m up, pointing down.
 Q_READY = np.array([0.0, -math.pi / 4, 0.0, -3 * math.pi / 4, 0.0, math.pi / 2, math.pi / 4])
@@ -154,7 +155,9 @@ class PandaKinematics:
     `q_min`/`q_max` are the joint limits used everywhere (planning, IK, the
     robot's command check): the URDF's, intersected with the datasheet's, and
     shrunk by `position_margin` on each side. `dq_max`, `ddq_max`, `dddq_max`
-    are the datasheet's velocity, acceleration and jerk limits.
+    are the datasheet's velocity, acceleration and jerk limits. `arm` ('panda'
+    or 'fr3') picks the datasheet table (supervisor/arm/limits.py); an FR3 with
+    the default (Panda) URDF takes its table's position limits as they are.
     """
 
     def __init__(
@@ -165,7 +168,10 @@ class PandaKinematics:
         urdf: str | Path | None = None,
         position_margin: float = 0.0,
         q_neutral: np.ndarray | None = None,
+        arm: str = "panda",
     ) -> None:
+        limits = arm_limits(arm)
+        self.arm = arm
         if urdf is None:
             urdf_path = find_panda_urdf()
         else:
@@ -200,18 +206,20 @@ class PandaKinematics:
         self.position_margin = float(position_margin)
         self.urdf_q_min = np.array(model.lowerPositionLimit, dtype=float)
         self.urdf_q_max = np.array(model.upperPositionLimit, dtype=float)
-        self.q_min = np.maximum(self.urdf_q_min, DATASHEET_Q_MIN) + position_margin
-        self.q_max = np.minimum(self.urdf_q_max, DATASHEET_Q_MAX) - position_margin
+        # The default URDF is the Panda's: an FR3 takes its own table unless its URDF is given.
+        with_urdf = arm == "panda" or urdf is not None
+        self.q_min = (np.maximum(self.urdf_q_min, limits.q_min) if with_urdf else limits.q_min) + position_margin
+        self.q_max = (np.minimum(self.urdf_q_max, limits.q_max) if with_urdf else limits.q_max) - position_margin
         if np.any(self.q_min >= self.q_max):
             raise ValueError(f"position_margin {position_margin} rad leaves no joint range")
         urdf_v = np.array(model.velocityLimit, dtype=float)
         self.velocity_limit_source = (
-            "urdf (equal to datasheet)" if np.allclose(urdf_v, DATASHEET_DQ_MAX)
+            "urdf (equal to datasheet)" if np.allclose(urdf_v, limits.dq_max)
             else f"datasheet (urdf gave {urdf_v.tolist()})"
         )
-        self.dq_max = DATASHEET_DQ_MAX.copy()
-        self.ddq_max = DATASHEET_DDQ_MAX.copy()
-        self.dddq_max = DATASHEET_DDDQ_MAX.copy()
+        self.dq_max = limits.dq_max.copy()
+        self.ddq_max = limits.ddq_max.copy()
+        self.dddq_max = limits.dddq_max.copy()
         for a in (self.q_min, self.q_max, self.dq_max, self.ddq_max, self.dddq_max):
             a.setflags(write=False)
 

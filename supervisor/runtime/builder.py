@@ -69,7 +69,7 @@ def open_drivers(cfg: Config, *, realtime: bool = False, scene: str | None = Non
     from drivers.robot import ROBOTS
 
     clock: Clock = MonotonicClock() if realtime else SimClock()
-    kin = PandaKinematics(T_flange_cam=cfg.camera.T_flange_cam, urdf=cfg.robot.urdf)
+    kin = PandaKinematics(T_flange_cam=cfg.camera.T_flange_cam, urdf=cfg.robot.urdf, arm=cfg.robot.arm)
     robot = ROBOTS.load(cfg.robot.driver).from_config(cfg, kin=kin, clock=clock)
     try:
         camera = CAMERAS.load(cfg.camera.driver).from_config(cfg, clock=clock, robot=robot, kin=kin, scene=scene,
