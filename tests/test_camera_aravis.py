@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests import gige_fake
+from sim import gige_fake
 
 
 def _require(reason: str) -> None:

@@ -56,8 +56,9 @@ def to_mono8(data: bytes | np.ndarray, width: int, height: int, pixel_format: in
     if flat.size < n:
         raise ValueError(f"buffer holds {flat.size} bytes, {width}x{height} needs {n}")
     flat = flat[:n]
-    if pixel_format == Aravis.PIXEL_FORMAT_MONO_8:
-        return flat.reshape(height, width).copy()
+    if pixel_format == Aravis.PIXEL_FORMAT_MONO_8:  # bytes from the buffer are already our own copy
+        img = flat.reshape(height, width)
+        return img if isinstance(data, bytes) else img.copy()
     if pixel_format in _BAYER_TO_GRAY:
         return cv2.cvtColor(flat.reshape(height, width), _BAYER_TO_GRAY[pixel_format])
     if pixel_format in _MONO16_SHIFT:

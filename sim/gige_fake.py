@@ -2,7 +2,7 @@
 network namespace, for the driver's disconnect tests and the benchmark.
 
 GVCP listens on the fixed UDP port 3956, so every user of the fake gets its own loopback in a
-new network namespace: the scenario runs as `unshare -n python -m tests.gige_fake SCENARIO`,
+new network namespace: the scenario runs as `unshare -n python -m sim.gige_fake SCENARIO`,
 brings `lo` up, starts the fake on 127.0.0.1 and drives `AravisCamera` against it, printing one
 JSON line of results. The fake is killed by its pid, never by name.
 """
@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 FAKE = "arv-fake-gv-camera-0.8"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[1]  # the checkout: `-m sim.gige_fake` runs from here
 
 
 def available() -> str:
@@ -39,7 +39,7 @@ def available() -> str:
 
 def run(scenario: str, *args: str, timeout: float = 120.0) -> dict:
     """Run `scenario` in a new network namespace; its JSON result."""
-    cmd = ["unshare", "-n", sys.executable, "-m", "tests.gige_fake", scenario, *args]
+    cmd = ["unshare", "-n", sys.executable, "-m", "sim.gige_fake", scenario, *args]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
     if proc.returncode != 0 or not lines:
@@ -63,14 +63,17 @@ class FakeServer:
         self.proc = None
 
 
-def _camera(frame_rate: float, fault_after: int = 3, pixel_format: str | None = None):
+def _camera(frame_rate: float, fault_after: int = 3, pixel_format: str | None = None, size: str = "512x512",
+            packet_size: int | None = None):
     from drivers.camera.aravis import AravisCamera
     from drivers.camera.settings import AravisSettings
     from supervisor.camera_model import Intrinsics
 
-    return AravisCamera(Intrinsics(512, 512, 600.0, 600.0, 256.0, 256.0),
+    w, h = (int(v) for v in size.split("x"))
+    roi = None if (w, h) == (512, 512) else (0, 0, w, h)
+    return AravisCamera(Intrinsics(w, h, 600.0, 600.0, w / 2.0, h / 2.0),
                         AravisSettings(address="127.0.0.1", fault_after_timeouts=fault_after,
-                                       pixel_format=pixel_format), frame_rate)
+                                       pixel_format=pixel_format, roi=roi, packet_size=packet_size), frame_rate)
 
 
 def _disconnect() -> dict:
@@ -116,11 +119,12 @@ def _disconnect() -> dict:
     return out
 
 
-def _throughput(rate: str, seconds: str, pixel_format: str = "") -> dict:
+def _throughput(rate: str, seconds: str, pixel_format: str = "", size: str = "512x512", packet_size: str = "") -> dict:
     """Frames per second through the driver at `rate` Hz for `seconds`, and the drops."""
     server = FakeServer()
     server.start()
-    cam = _camera(float(rate), pixel_format=pixel_format or None)
+    cam = _camera(float(rate), pixel_format=pixel_format or None, size=size,
+                  packet_size=int(packet_size) if packet_size else None)
     cam.read(2.0)  # first frame, not timed
     n0, t0 = cam.frames_read, time.monotonic()
     repeated = 0
@@ -131,7 +135,7 @@ def _throughput(rate: str, seconds: str, pixel_format: str = "") -> dict:
     st = cam.stats
     cam.close()
     server.kill()
-    return {"rate_hz": float(rate), "pixel_format": cam.device_pixel_format, "seconds": round(dt, 3),
+    return {"rate_hz": float(rate), "size": size, "packet_size": packet_size or "default", "pixel_format": cam.device_pixel_format, "seconds": round(dt, 3),
             "frames": cam.frames_read - n0, "fps": (cam.frames_read - n0) / dt, "skipped": st.skipped,
             "repeated": repeated, "failed_buffers": st.buffer_status, "grab_timeouts": st.grab_timeouts,
             "underruns": st.underruns}
