@@ -69,11 +69,20 @@ def _camera(frame_rate: float, fault_after: int = 3, pixel_format: str | None = 
     from drivers.camera.settings import AravisSettings
     from supervisor.camera_model import Intrinsics
 
+    from supervisor.errors import DriverError
+
     w, h = (int(v) for v in size.split("x"))
     roi = None if (w, h) == (512, 512) else (0, 0, w, h)
-    return AravisCamera(Intrinsics(w, h, 600.0, 600.0, w / 2.0, h / 2.0),
-                        AravisSettings(address="127.0.0.1", fault_after_timeouts=fault_after,
-                                       pixel_format=pixel_format, roi=roi, packet_size=packet_size), frame_rate)
+    deadline = time.monotonic() + 5.0
+    while True:  # a loaded machine may take a while to start the fake
+        try:
+            return AravisCamera(Intrinsics(w, h, 600.0, 600.0, w / 2.0, h / 2.0),
+                                AravisSettings(address="127.0.0.1", fault_after_timeouts=fault_after,
+                                               pixel_format=pixel_format, roi=roi, packet_size=packet_size), frame_rate)
+        except DriverError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
 
 
 def _disconnect() -> dict:
@@ -90,7 +99,7 @@ def _disconnect() -> dict:
     out["pixel_format"] = cam.device_pixel_format
     server.kill()
     t_kill = time.monotonic()
-    for _ in range(5):
+    for _ in range(6):
         try:
             cam.read(0.2)
             out["errors"].append("frame")
@@ -141,7 +150,41 @@ def _throughput(rate: str, seconds: str, pixel_format: str = "", size: str = "51
             "underruns": st.underruns}
 
 
-SCENARIOS = {"disconnect": _disconnect, "throughput": _throughput}
+def _close_during_grab() -> dict:
+    """close() from another thread while a grab waits (0.5 Hz stream): how long each side takes."""
+    import threading
+
+    from supervisor.errors import DriverError
+
+    server = FakeServer()
+    server.start()
+    cam = _camera(0.5)
+    cam.read(3.0)
+    cam.read(3.0)  # now the next frame is a whole period (2 s) away
+    out: dict = {}
+
+    def reader() -> None:
+        t0 = time.monotonic()
+        try:
+            cam.read(5.0)
+            out["reader"] = "frame"
+        except DriverError as exc:
+            out["reader"] = type(exc).__name__
+        out["reader_s"] = round(time.monotonic() - t0, 3)
+
+    th = threading.Thread(target=reader)
+    th.start()
+    time.sleep(0.2)
+    t0 = time.monotonic()
+    cam.close()
+    out["close_s"] = round(time.monotonic() - t0, 3)
+    th.join(5.0)
+    out["reader_alive"] = th.is_alive()
+    server.kill()
+    return out
+
+
+SCENARIOS = {"disconnect": _disconnect, "throughput": _throughput, "close_during_grab": _close_during_grab}
 
 
 def main(argv: list[str]) -> int:

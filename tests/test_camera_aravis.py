@@ -113,8 +113,9 @@ def test_failed_buffers_are_counted_not_raised():
 
 
 def test_timeouts_then_latched_loss():
-    with _fake(rate=0.2, fault_after_timeouts=2) as cam:
-        cam.read(6.0)  # the first frame at 0.2 Hz
+    with _fake(rate=0.5, fault_after_timeouts=2) as cam:
+        cam.read(3.0)
+        cam.read(3.0)  # now the next frame is a whole period (2 s) away
         with pytest.raises(CameraTimeout):
             cam.read(0.1)
         with pytest.raises(DriverError, match="device lost"):
@@ -127,6 +128,7 @@ def test_timeouts_then_latched_loss():
 def test_close_from_another_thread_ends_a_pending_grab():
     cam = _fake(rate=1.0)
     cam.read(3.0)
+    cam.read(3.0)  # now the next frame is a whole period away
     result = {}
 
     def reader():
@@ -207,11 +209,20 @@ def test_gige_fake_killed_mid_stream_is_a_latched_fault():
     _require(gige_fake.available())
     r = gige_fake.run("disconnect")
     assert r["frames_before"] == 10 and r["pixel_format"] == "Mono8"
-    # pops time out, then the third consecutive timeout declares the device lost (latched)
-    assert r["errors"] == ["timeout", "timeout", "driver_error", "driver_error", "driver_error"], r
+    # pops time out (after at most one frame already in flight), then the third consecutive timeout
+    # declares the device lost (latched)
+    errors = r["errors"][1:] if r["errors"][0] == "frame" else r["errors"]
+    assert errors[:5] == ["timeout", "timeout", "driver_error", "driver_error", "driver_error"], r
     assert r["stats"]["grab_timeouts"] == 3 and r["stats"]["lost"]
     # the fake coming back does not bring frames through the faulted driver ...
     assert r["after_restart"] == "driver_error", r
     assert r["close_s"] < 1.0
     # ... a newly opened driver does
     assert r["reopened_ok"] == 5
+
+
+def test_gige_close_from_another_thread_ends_a_pending_grab():
+    _require(gige_fake.available())
+    r = gige_fake.run("close_during_grab")
+    assert not r["reader_alive"] and r["reader"] == "DriverError", r
+    assert r["reader_s"] < 0.2 + 0.5 and r["close_s"] < 0.5, r

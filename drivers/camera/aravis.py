@@ -184,14 +184,18 @@ class AravisCamera(Camera):
             raise DriverError(f"aravis {self.source}: device lost ({self._lost}); open the camera again")
         deadline = time.monotonic() + timeout  # the device is real: wait on the host clock
         while True:
+            if self.closed:
+                raise DriverError(f"aravis {self.source}: closed during a grab")
             if self._control_lost.is_set():
                 self._declare_lost("control channel lost")
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
-            with self._lock:
+            if not self._lock.acquire(timeout=POP_SLICE_S):  # close() is tearing down: look again
+                continue
+            try:
                 if self.closed:
-                    raise DriverError(f"aravis {self.source}: closed during a grab")
+                    continue
                 buf = self._stream.timeout_pop_buffer(max(1, int(min(remaining, POP_SLICE_S) * 1e6)))
                 if buf is None:
                     continue
@@ -199,6 +203,8 @@ class AravisCamera(Camera):
                     frame = self._frame_from(buf)
                 finally:
                     self._stream.push_buffer(buf)
+            finally:
+                self._lock.release()
             if frame is not None:
                 self._consecutive_timeouts = 0
                 return frame
