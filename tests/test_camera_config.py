@@ -50,6 +50,7 @@ def test_driver_choices_come_from_the_registry(tmp_path):
     ("  aravis:\n    pixel_format: YUV422\n", "camera.aravis.pixel_format", "expected one of"),
     ("  aravis:\n    address: 10.0.0\n", "camera.aravis.address", "IPv4"),
     ("  aravis:\n    exposure: 3\n", "camera.aravis.exposure", "unknown key"),
+    ("  aravis:\n    address: 127.0.0.1\n    device_id: Fake_1\n", "camera.aravis.address", "not both"),
     ("  aravis:\n    fake_interface: 1\n", "camera.aravis.fake_interface", "true or false"),
     ("  v4l2:\n    formats: [NV12]\n", "camera.v4l2.formats", "expected a non-empty list"),
     ("  v4l2:\n    buffers: 0\n", "camera.v4l2.buffers", ">= 1"),

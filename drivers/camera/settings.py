@@ -60,6 +60,9 @@ class AravisSettings:
         )
         if out.address is not None:
             _check_ipv4(n, "address", out.address)
+            if out.device_id is not None or out.fake_interface:
+                raise n.error("address", "give either address (a GigE camera, no discovery) or device_id / "
+                                         "fake_interface, not both")
         if out.interface_address is not None:
             _check_ipv4(n, "interface_address", out.interface_address)
         n.done()
