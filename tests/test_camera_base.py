@@ -74,3 +74,32 @@ def test_wrong_size_frame_is_flagged_and_not_undistorted():
     Kd = Intrinsics(160, 120, 150.0, 150.0, 80.0, 60.0, (-0.25, 0.0, 0.0, 0.0, 0.0))
     f = Scripted([1], Kd, np.zeros((100, 100), np.uint8), undistort=True).read()
     assert not f.ok and "expected 160x120" in f.problem and not f.undistorted
+
+
+def test_sim_camera_through_a_lens_delivers_the_pinhole_image():
+    """Distortion added by the simulated lens is removed once at the driver: the pipeline sees the render."""
+    import dataclasses
+
+    from drivers.camera.sim import SimCamera
+    from sim.renderer import Renderer
+    from sim.scene import load_scene
+    from supervisor.config import load_config
+    from supervisor.motion.paths import start_camera_pose
+
+    scene = load_scene("phantom")
+    K0 = load_config().camera.intrinsics
+    Kd = dataclasses.replace(K0, dist=(-0.12, 0.06, 0.0005, -0.0003, 0.0))
+    pivot = (scene.T_base_scene @ np.append(scene.pivot, 1.0))[:3]
+    T = start_camera_pose(pivot, scene.view.radius, scene.view.elevation, scene.view.heading)
+    pinhole = Renderer(scene, K0).render(T).image
+    lensed = SimCamera(Renderer(scene, Kd), lambda: T, lens=True)
+    f = lensed.read()
+    assert f.undistorted and lensed.output_intrinsics.dist == (0.0,) * 5
+    raw = SimCamera(Renderer(scene, Kd), lambda: T, lens=False).read()  # no lens: the render itself
+    assert np.array_equal(raw.image, pinhole)
+    inner = (slice(80, -80), slice(80, -80))
+    err = np.abs(f.image.astype(int) - pinhole.astype(int))[inner].mean()
+    from sim.calibration_views import LensDistortion
+
+    through_lens = np.abs(LensDistortion(Kd)(pinhole).astype(int) - pinhole.astype(int))[inner].mean()
+    assert err < 2.0 and err < 0.3 * through_lens, (err, through_lens)
