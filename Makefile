@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-.PHONY: setup run test bench clean
+.PHONY: setup run test bench clean aravis-deps
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or: make PYTHON=/path/to/python3.11)"; exit 2; }
@@ -21,6 +21,18 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# Aravis camera driver (the `aravis` extra): Debian's build deps for PyGObject and the GigE fake camera
+# (aravis-tools), then the pip wheels. Needs root for apt-get; idempotent (dpkg check, stamp file).
+APT_ARAVIS := libgirepository1.0-dev libcairo2-dev pkg-config gcc aravis-tools
+ARAVIS_STAMP := $(VENV)/.aravis-installed
+$(ARAVIS_STAMP): $(STAMP) pyproject.toml
+	@dpkg -s $(APT_ARAVIS) >/dev/null 2>&1 || { apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(APT_ARAVIS) >/dev/null; }
+	$(PY) -m pip install --quiet -e '.[test,aravis]'
+	@touch $(ARAVIS_STAMP)
+
+aravis-deps: $(ARAVIS_STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_render.py

@@ -255,6 +255,35 @@ def cmd_ctl(args: argparse.Namespace) -> int:
 DRY_RUN_FILES = ("summary.json", "events.jsonl", "timeline.png")
 
 
+def cmd_calibrate_intrinsics(args: argparse.Namespace) -> int:
+    from supervisor.calibration.commands import parse_board, run_intrinsics
+
+    if args.board:
+        board = parse_board(args.board)
+    else:
+        from sim.scene import load_scene
+
+        board = load_scene(args.scene or _config(args).scene).board
+    r = run_intrinsics(args.images, board, Path(args.output), fix_k3=not args.free_k3)
+    rep = r["report"]
+    print(f"{rep['views_used']} views ({len(rep['views_rejected'])} rejected), RMS {rep['rms_px']:.3f} px: "
+          f"fx {rep['fx']:.2f} fy {rep['fy']:.2f} cx {rep['cx']:.2f} cy {rep['cy']:.2f} px")
+    print("wrote " + ", ".join(r["files"]))
+    return 0
+
+
+def cmd_calibrate_hand_eye(args: argparse.Namespace) -> int:
+    from supervisor.calibration.commands import parse_board, run_hand_eye
+
+    r = run_hand_eye(args.datasets, Path(args.output), parse_board(args.board) if args.board else None)
+    rep, T = r["report"], r["T_flange_cam"]
+    print(f"{rep['views_used']} views, RMS {rep['rms_px']:.3f} px, board spread {rep['board_spread_mm']:.3f} mm / "
+          f"{rep['board_spread_deg']:.3f} deg: T_flange_cam translation "
+          f"[{', '.join(f'{1000 * v:.2f}' for v in T[:3, 3])}] mm")
+    print("wrote " + ", ".join(r["files"]))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="supervisor", description=__doc__.splitlines()[0])
     p.add_argument("--config", default=None, help="configuration YAML (default: embedded config/default.yaml)")
@@ -352,6 +381,22 @@ def build_parser() -> argparse.ArgumentParser:
     cm.add_argument("--depth-mm", type=float, nargs=2, default=None, metavar=("NEAR", "FAR"),
                     help="the target's depth range (cameras without a known start view)")
     ct.set_defaults(func=cmd_ctl)
+
+
+    ca = sub.add_parser("calibrate", help="camera calibration (ChArUco)").add_subparsers(dest="sub", required=True)
+    ci = ca.add_parser("intrinsics", help="intrinsics from ChArUco images -> the config's camera section (YAML)")
+    ci.add_argument("images", nargs="+")
+    ci.add_argument("-o", "--output", required=True, help="output YAML (also writes .json report and .png plot)")
+    ci.add_argument("--board", default=None, help="SXxSY:SQUARE_MM:MARKER_MM:DICT (default: the scene's board)")
+    ci.add_argument("--scene", default=None, help="take the board from this scene (default: the config's)")
+    ci.add_argument("--free-k3", action="store_true", help="also fit k3 (default: fixed at 0)")
+    ci.set_defaults(func=cmd_calibrate_intrinsics)
+    ch = ca.add_parser("hand-eye", help="T_flange_cam from recorded flange poses and board poses")
+    ch.add_argument("datasets", nargs="+", metavar="DATASET",
+                    help="recordings with the board in view; rotate about two axes (e.g. arcs at azimuth 0 and 90)")
+    ch.add_argument("-o", "--output", required=True, help="output YAML (also writes .json report and .png plot)")
+    ch.add_argument("--board", default=None, help="SXxSY:SQUARE_MM:MARKER_MM:DICT (default: the recording's)")
+    ch.set_defaults(func=cmd_calibrate_hand_eye)
 
     de = sub.add_parser("demo", help="quick dataset + localization table (the default main job)")
     de.add_argument("-o", "--out", default="out/demo")

@@ -19,6 +19,7 @@ from supervisor.camera_model import Intrinsics
 from supervisor.errors import ConfigError
 from supervisor.geometry import transform_from_config
 from drivers.camera import CAMERAS
+from drivers.camera.settings import AravisSettings, V4L2Settings
 from drivers.robot import ROBOTS
 from supervisor.localization.settings import LocalizerSettings
 from supervisor.prediction.models import VARIANTS
@@ -45,6 +46,8 @@ class CameraConfig:
     T_flange_cam: np.ndarray
     frame_period_s: float
     timeout_s: float
+    aravis: AravisSettings = field(default_factory=AravisSettings)  # camera.aravis (driver aravis)
+    v4l2: V4L2Settings = field(default_factory=V4L2Settings)  # camera.v4l2 (driver v4l2)
 
 
 @dataclass(frozen=True)
@@ -173,6 +176,8 @@ def _camera(n: Node) -> CameraConfig:
         T_flange_cam=transform_from_config(n, "T_flange_cam"),
         frame_period_s=1.0 / n.number("frame_rate_hz", 30.0, min=0.1, max=1000.0),
         timeout_s=n.number("timeout_ms", 200.0, min=1.0, max=60000.0) / 1000.0,
+        aravis=AravisSettings.from_node(n.child("aravis", {})),
+        v4l2=V4L2Settings.from_node(n.child("v4l2", {})),
     )
     n.done()
     return out

@@ -14,6 +14,7 @@ per-frame outcomes (a frame that does not localize) are status values instead.
      +-- RobotFault             the robot refused or cannot execute a command
      |    +-- JointLimitError   a command would break a joint position/velocity limit
      +-- KinematicsError        IK did not converge / pose unreachable
+     +-- CalibrationError       too few usable calibration views, or the solver failed
 
 Every error survives pickling (`__reduce__` rebuilds it from its constructor's
 arguments), so one raised in a worker process reaches the parent as itself.
@@ -110,3 +111,7 @@ class JointLimitError(RobotFault):
 
 class KinematicsError(SupervisorError):
     """Inverse kinematics failed or a pose is not reachable."""
+
+
+class CalibrationError(SupervisorError):
+    """Calibration input is unusable (too few views showing the board) or the solver failed."""

@@ -368,6 +368,11 @@ class Node:
     def has(self, key: str) -> bool:
         return key in self.data
 
+    def is_null(self, key: str) -> bool:
+        """True when `key` is absent or null (and marks it read, for optional keys)."""
+        self._seen.add(key)
+        return self.data.get(key) is None
+
     def keys(self) -> list[str]:
         return list(self.data)
 

@@ -191,7 +191,9 @@ class Supervisor:
             frame = self.frame_at_rest()
             shots.append((frame.image, self.camera_pose()))
         (i0, T0), (i1, T1) = shots
-        model = build_model(i0, i1, T0, T1, self.drivers.camera.intrinsics, self.cfg.localization, roi, board=board)
+        cam = self.drivers.camera
+        intrinsics = getattr(cam, "output_intrinsics", cam.intrinsics)  # zero distortion if the driver undistorts
+        model = build_model(i0, i1, T0, T1, intrinsics, self.cfg.localization, roi, board=board)
         self.move_camera_to(T0)
         self.use_model(model, T0)
         return model
