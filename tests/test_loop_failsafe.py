@@ -167,3 +167,31 @@ def test_cpu_starvation_on_the_real_clock_overruns_the_budget_and_stops():
     assert rec.halt_reason == "fault:overrun"
     assert pacer.stats.max_consecutive >= 3
     assert not np.any(rig.sim.state().dq)
+
+
+def test_hooks_see_the_run_and_a_failing_hook_never_disturbs_it():
+    beats, brakes = [], []
+
+    class Observer:
+        def __init__(self):
+            self.states = self.frames = self.results = 0
+
+        def state(self, st):
+            self.states += 1
+
+        def frame(self, job):
+            self.frames += 1
+            raise OSError("recorder disk full")  # must be reported once and ignored
+
+        def result(self, jr):
+            self.results += 1
+
+    rig = build_loop()
+    obs = Observer()
+    rig.loop.heartbeat, rig.loop.on_brake, rig.loop.observer = beats.append, lambda t, r: brakes.append(r), obs
+    rec = rig.loop.run()
+    assert rec.halt_reason in ("boundary", "end_of_path")
+    assert len(beats) > 1000 and brakes == [rec.halt_reason]
+    assert obs.states > 1000 and obs.frames == len(rec.samples) and obs.results == len(rec.samples)
+    errors = rig.events.of_kind("hook_error")
+    assert len(errors) == 1 and errors[0]["hook"] == "observer.frame"

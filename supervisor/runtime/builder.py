@@ -240,9 +240,12 @@ class Supervisor:
             s_end = check.reachable
         return ArcPlan(path, float(azimuth), float(s_end), check)
 
-    def run(self, plan: ArcPlan, *, max_time: float = 600.0, heartbeat=None) -> RunRecord:
-        """One gated motion along `plan` under the current stage, to a latched halt. `heartbeat(now)` is
-        called from every tick whose robot state was fresh (the daemon's watchdog, the CAN heartbeat)."""
+    def run(self, plan: ArcPlan, *, max_time: float = 600.0, heartbeat=None, on_brake=None,
+            observer=None) -> RunRecord:
+        """One gated motion along `plan` under the current stage, to a latched halt. Hooks (see
+        `SupervisorLoop`): `heartbeat(now)` from every tick whose robot state was fresh (the daemon's
+        watchdog, the CAN heartbeat), `on_brake(now, reason)` once at the brake (CAN STOP), `observer`
+        sees states, frames and results (a session recorder)."""
         if self.model is None or self.T_base_cam_model is None:
             raise MotionRejected("no target model: build or load one first", 0.0)
         d, st, cfg = self.drivers, self._stage, self.cfg
@@ -255,7 +258,8 @@ class Supervisor:
                                   follower=follower, kin=d.kin, T_base_cam_model=self.T_base_cam_model,
                                   T_cam_target_model=self.model.T_cam0_target, clock=d.clock, events=self.events,
                                   s_end=plan.s_end, frame_period=cfg.camera.frame_period_s,
-                                  reference_point=self.model.centroid, pacer=pacer, heartbeat=heartbeat)
+                                  reference_point=self.model.centroid, pacer=pacer, heartbeat=heartbeat, on_brake=on_brake,
+                                  observer=observer)
             with self._lock:
                 self._loop = loop
             if d.realtime:
@@ -282,13 +286,13 @@ class Supervisor:
             return ThreadWorker(self.model, cfg.localization, d.clock, threads=self.workers)
         return InlineWorker(self.model, cfg.localization, self.latency_scale)
 
-    def request_stop(self, reason: str = "stop") -> bool:
+    def request_stop(self, reason: str = "stop", halt_reason: str | None = None) -> bool:
         """Brake the running motion, latched (thread-safe); False when nothing is moving."""
         with self._lock:
             loop = self._loop
         if loop is None:
             return False
-        loop.request_stop(reason)
+        loop.request_stop(reason, halt_reason)
         return True
 
     def close(self) -> None:

@@ -141,11 +141,17 @@ class SupervisorLoop:
                  stage: StageConfig, follower: PathFollower, kin: Kinematics, T_base_cam_model: np.ndarray,
                  T_cam_target_model: np.ndarray, clock: Clock, events: EventLog, s_end: float,
                  frame_period: float, reference_point: np.ndarray | None = None, pacer=None,
-                 heartbeat=None) -> None:
+                 heartbeat=None, on_brake=None, observer=None) -> None:
         self.robot = robot
         # Called with the clock time from every tick whose robot state was fresh and trusted: the daemon's
         # systemd watchdog and the CAN heartbeat hang on it, so a hung or failing loop stops them.
         self.heartbeat = heartbeat
+        # Called once when the motion brakes, with (time, halt reason): e.g. the CAN STOP frame.
+        self.on_brake = on_brake
+        # Sees every robot state, submitted frame and localization result (`state(st)`, `frame(job)`,
+        # `result(job_result)`), e.g. a session recorder. It must only enqueue: it runs in the tick.
+        self.observer = observer
+        self._hook_failed: set[str] = set()
         self.frames = frames
         self.worker = worker
         self.pacer = pacer if pacer is not None else SimPacer()
@@ -186,10 +192,22 @@ class SupervisorLoop:
         self._stop_request: str | None = None  # set from another thread (operator stop, signal)
         self._q_min, self._q_max = np.asarray(kin.q_min, float), np.asarray(kin.q_max, float)
 
-    def request_stop(self, reason: str = "stop") -> None:
-        """Brake at once and halt, latched (thread-safe: the tick picks it up). Always accepted."""
+    def request_stop(self, reason: str = "stop", halt_reason: str | None = None) -> None:
+        """Brake at once and halt, latched (thread-safe: the tick picks it up). Always accepted. The halt
+        reason is `stop:<reason>` unless given (e.g. `external_stop` for the PLC's stop input)."""
         if self._stop_request is None:
-            self._stop_request = reason
+            self._stop_request = halt_reason or f"stop:{reason}"
+
+    def _hook(self, name: str, fn, *args) -> None:
+        """Call an injected hook; a failing hook is reported once and never disturbs the tick."""
+        if fn is None:
+            return
+        try:
+            fn(*args)
+        except Exception as exc:  # noqa: BLE001 - hooks are observers, not part of the safety path
+            if name not in self._hook_failed:
+                self._hook_failed.add(name)
+                self.events.emit(self.clock.now(), "hook_error", hook=name, error=f"{type(exc).__name__}: {exc}")
 
     # -- allowances ----------------------------------------------------------------------
     def _warmup_allowance(self) -> float:
@@ -286,6 +304,8 @@ class SupervisorLoop:
             self.events.emit(now, "frame_dropped", seq=frame.seq, reason="localization queue full")
             return None
         self._awaiting[self._step] = self._awaiting.get(self._step, 0) + 1
+        if self.observer is not None:
+            self._hook("observer.frame", self.observer.frame, job)
         return True
 
     def _collect(self, now: float) -> None:
@@ -299,6 +319,8 @@ class SupervisorLoop:
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
             self._awaiting[job.step] -= 1
+            if self.observer is not None:
+                self._hook("observer.result", self.observer.result, jr)
             self.events.emit(now, "localization", step=job.step, frame_t=job.t, theta_deg=math.degrees(theta),
                              n_inliers=res.n_inliers, status=res.status.name,
                              latency_ms=(jr.ready_t - job.t) * 1000)
@@ -362,6 +384,7 @@ class SupervisorLoop:
         self.events.emit(now, "brake", reason=reason, s_deg=math.degrees(self.follower.state.s),
                          theta_allowed_deg=math.degrees(self._theta_allowed))
         self._phase = Phase.BRAKING
+        self._hook("on_brake", self.on_brake, now, reason)
 
     def _robot_lost(self, now: float, kind: str, detail: str) -> None:
         """The robot's state or command failed: record the fault, then the driver's own stop."""
@@ -371,6 +394,8 @@ class SupervisorLoop:
             self.record.s_allowed_at_brake = self._theta_allowed
         self.events.emit(now, "brake", reason=f"fault:{kind}", s_deg=math.degrees(self.follower.state.s),
                          theta_allowed_deg=math.degrees(self._theta_allowed), by="driver_stop")
+        if self._phase not in (Phase.BRAKING, Phase.HALTED):
+            self._hook("on_brake", self.on_brake, now, f"fault:{kind}")
         try:
             self.robot.stop()
             st = self.robot.state()  # where the driver's stop left the arm: part of the executed trajectory
@@ -446,7 +471,7 @@ class SupervisorLoop:
     def _tick(self, now: float, t_start: float, max_time: float) -> bool:
         """One control tick; True when the motion has ended."""
         if self._stop_request is not None:
-            self._halt(now, f"stop:{self._stop_request}")
+            self._halt(now, self._stop_request)
         if now - t_start > max_time:
             self._fault(now, "timeout", f"run exceeded {max_time} s")
         st = self._read_state(now)
@@ -456,8 +481,10 @@ class SupervisorLoop:
         if st.t > self._last_state_t:
             self.history.add(st.t, st.q)
         self._last_state_t = st.t
-        if fresh and self.heartbeat is not None and self._phase is not Phase.HALTED:
-            self.heartbeat(now)
+        if fresh and self._phase is not Phase.HALTED:
+            self._hook("heartbeat", self.heartbeat, now)
+        if self.observer is not None:
+            self._hook("observer.state", self.observer.state, st)
         try:
             self._collect(now)
             oldest = self.worker.oldest_pending()
