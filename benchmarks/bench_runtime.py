@@ -1,11 +1,12 @@
 """The runtime on the real clock: tick lateness, localization throughput, capture-to-gate latency, and the
 real-clock halt against the simulated-time dry-run.
 
-1. Localization throughput: rendered frames of the default scene through `ThreadWorker` with 1 and 2
-   threads, the queue kept full (frames per second; goal >= 30 on 2 cores).
+1. Localization throughput: rendered frames of the default scene through `ProcessWorker` (the real-clock
+   default) and `ThreadWorker` with 1 and 2 workers, the queue kept full (frames per second; goal >= 30).
 2. Tick lateness: the control tick's own work (gate + path follower + IK, as the loop does it) paced by
-   `TickPacer` at 1 kHz and at 250 Hz for `--seconds`, once idle and once while the worker localizes at
-   full rate on 2 threads; p50/p99/max lateness and overruns (goal p99 < 0.2 ms at 1 kHz).
+   `TickPacer` at 1 kHz and at 250 Hz for `--seconds`: idle, while 2 localization processes work at full
+   rate (the real-clock default), and while 2 localization threads of the same process do (the GIL's cost);
+   p50/p99/max lateness and overruns (goal p99 < 0.2 ms at 1 kHz).
 3. The default dry-run on the real clock (capture thread, localization threads, paced 1 kHz loop)
    against the same dry-run in simulated time: halt angles (goal: within one step), tick lateness of that
    run, and capture-to-gate latency (frame exposure to the result reaching the loop), p50/p99.
@@ -42,7 +43,7 @@ from supervisor.motion.plan import PathFollower  # noqa: E402
 from supervisor.runtime.builder import Supervisor, open_drivers, realtime_thread_setup  # noqa: E402
 from supervisor.runtime.events import EventLog  # noqa: E402
 from supervisor.runtime.pacer import TickPacer  # noqa: E402
-from supervisor.runtime.worker import FrameJob, ThreadWorker  # noqa: E402
+from supervisor.runtime.worker import FrameJob, ProcessWorker, ThreadWorker  # noqa: E402
 
 DEG = math.pi / 180.0
 
@@ -65,9 +66,11 @@ def prepare(cfg, n_frames: int = 24):
     return model, sup.T_base_cam_model, path, frames, drivers.kin
 
 
-def throughput(cfg, model, T0, frames, threads: int, seconds: float) -> dict:
+def throughput(cfg, model, T0, frames, threads: int, seconds: float, kind: str = "process") -> dict:
     clock = MonotonicClock()
-    worker = ThreadWorker(model, cfg.localization, clock, threads=threads, max_pending=2 * threads)
+    worker = (ProcessWorker(model, cfg.localization, clock, processes=threads, max_pending=2 * threads)
+              if kind == "process" else ThreadWorker(model, cfg.localization, clock, threads=threads,
+                                                     max_pending=2 * threads))
     t_end = time.monotonic() + seconds
     k = done = 0
     lat = []
@@ -83,7 +86,7 @@ def throughput(cfg, model, T0, frames, threads: int, seconds: float) -> dict:
         time.sleep(0.001)
     elapsed = time.monotonic() - t0
     worker.close()
-    return {"threads": threads, "fps": done / elapsed, "latency_p50_ms": float(np.median(lat) * 1e3),
+    return {"worker": kind, "threads": threads, "fps": done / elapsed, "latency_p50_ms": float(np.median(lat) * 1e3),
             "latency_p99_ms": float(np.percentile(lat, 99) * 1e3)}
 
 
@@ -125,11 +128,12 @@ def lateness(kin, path, rate_hz: float, seconds: float, load=None) -> dict:
     return res
 
 
-def localization_load(cfg, model, T0, frames):
-    """While the tick thread runs: localize at full rate on 2 threads."""
+def localization_load(cfg, model, T0, frames, kind: str = "process"):
+    """While the tick thread runs: localize at full rate on 2 threads or 2 processes."""
     def load(tick_thread: threading.Thread) -> None:
         clock = MonotonicClock()
-        worker = ThreadWorker(model, cfg.localization, clock, threads=2, max_pending=4)
+        worker = (ProcessWorker(model, cfg.localization, clock, processes=2, max_pending=4) if kind == "process"
+                  else ThreadWorker(model, cfg.localization, clock, threads=2, max_pending=4))
         k = done = 0
         t0 = time.monotonic()
         while tick_thread.is_alive():
@@ -177,20 +181,21 @@ def main() -> int:
     print("preparing the model and frames ...", flush=True)
     model, T0, path, frames, kin = prepare(cfg)
     report["throughput"] = []
-    for n in (1, 2):
-        r = throughput(cfg, model, T0, frames, n, args.seconds)
-        print(f"localization, {n} thread(s): {r['fps']:.1f} frames/s, latency p50 {r['latency_p50_ms']:.0f} ms",
-              flush=True)
-        report["throughput"].append(r)
+    for kind in ("process", "thread"):
+        for n in (1, 2):
+            r = throughput(cfg, model, T0, frames, n, args.seconds, kind)
+            print(f"localization, {n} {kind}(es): {r['fps']:.1f} frames/s, latency p50 {r['latency_p50_ms']:.0f} ms",
+                  flush=True)
+            report["throughput"].append(r)
     report["lateness"] = []
     for rate in (1000.0, 250.0):
-        for loaded in (False, True):
-            load = localization_load(cfg, model, T0, frames) if loaded else None
+        for loaded in (None, "process", "thread"):
+            load = localization_load(cfg, model, T0, frames, loaded) if loaded else None
             r = lateness(kin, path, rate, args.seconds, load)
             r["localization_load"] = loaded
             if loaded:
                 r["localization_fps_meanwhile"] = getattr(load, "fps", None)
-            print(f"tick at {rate:.0f} Hz{' with localization' if loaded else ''}: lateness p50 "
+            print(f"tick at {rate:.0f} Hz{f' with localization in 2 {loaded}s' if loaded else ''}: lateness p50 "
                   f"{r.get('lateness_p50_ms', 0):.3f} ms, p99 {r.get('lateness_p99_ms', 0):.3f} ms, max "
                   f"{r.get('lateness_max_ms', 0):.3f} ms, overruns {r['overruns']}/{r['ticks']}"
                   + (f", localization {r['localization_fps_meanwhile']:.1f} fps" if loaded else ""), flush=True)

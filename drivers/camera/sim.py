@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -32,6 +33,7 @@ class SimCamera(Camera):
         self.frame_period = frame_period
         self.noise_seed = noise_seed
         self._frame_index = 0
+        self._render_s = 0.0  # the last render's wall time (real clock only)
         self._lens = LensDistortion(renderer.intrinsics) if lens and has_distortion(renderer.intrinsics) else None
 
     @classmethod
@@ -73,10 +75,16 @@ class SimCamera(Camera):
             close()
 
     def _grab(self, timeout: float) -> RawFrame:
-        self._pace(self.frame_period)
+        # On the real clock a render takes real time: pace at what this machine sustains (a render every
+        # 1.2 render times at most) so the simulator leaves the cores to the supervisor's own work, as a
+        # real camera would; in simulated time (and whenever rendering keeps up) the configured rate.
+        self._pace(max(self.frame_period, 1.2 * self._render_s))
         exposed = self.clock.now()  # the pose is sampled now; rendering takes real time on a real clock
         T_base_cam = np.array(self.pose_source(), dtype=float)
+        t0 = time.perf_counter()
         rendered = self.renderer.render(T_base_cam, frame_index=self._frame_index, noise_seed=self.noise_seed)
+        if not isinstance(self.clock, SimClock):
+            self._render_s = time.perf_counter() - t0
         self._frame_index += 1
         image = rendered.image if self._lens is None else self._lens(rendered.image)
         return RawFrame(image, device_seq=self._frame_index, device_time=exposed,

@@ -17,6 +17,7 @@ deterministic.
 from __future__ import annotations
 
 import math
+import os
 import threading
 from dataclasses import dataclass
 
@@ -122,6 +123,9 @@ class Supervisor:
         self.drivers = drivers
         self.events = events
         self.latency_scale = latency_scale
+        if getattr(drivers.camera, "renders_on_host", False) and drivers.realtime:
+            # A simulated camera takes a core of its own to render: leave it one (2 cores: 1 localizer).
+            workers = min(workers, max(1, (os.cpu_count() or 2) - 1))
         self.workers = workers
         self.worker_kind = worker or ("process" if drivers.realtime else "inline")
         if self.worker_kind not in ("inline", "process", "thread"):

@@ -439,7 +439,7 @@ class SupervisorLoop:
         if sampling == "stop_and_go":
             self._phase = Phase.CAPTURING  # the first samples are taken at the start pose
             self._frames_in_step = 0
-            self._rest_t = None  # at rest since before the run: any new frame was exposed at rest
+            self._rest_t = st.t  # frames from here on: the robot-state history covers their exposure
         else:
             self._target_s = self.s_end
         self.pacer.start()
