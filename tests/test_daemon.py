@@ -233,3 +233,33 @@ def test_sigterm_mid_motion_brakes_flushes_and_exits_0(tmp_path):
         assert d.notify.wait_for("STOPPING", "1", 2.0)
     finally:
         d.stop()
+
+
+def test_a_config_error_refuses_to_start_with_one_line(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text((Path(__file__).resolve().parents[1] / "config" / "default.yaml").read_text()
+                   .replace("n_t: 15", "n_t: .nan", 1))
+    r = subprocess.run([SUPERVISOR, "daemon", "--config", str(bad), "--socket", str(tmp_path / "c.sock"),
+                        "--log-dir", str(tmp_path / "logs")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    err = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert len(err) == 1 and "n_t" in err[0] and str(bad) in err[0], r.stderr
+    assert not (tmp_path / "c.sock").exists()
+
+
+@pytest.mark.slow
+def test_a_full_log_disk_raises_an_alarm_and_the_daemon_keeps_supervising(tmp_path):
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / "events.jsonl").symlink_to("/dev/full")  # every write: ENOSPC
+    d = DaemonProc(tmp_path)
+    try:
+        assert d.notify.wait_for("READY", "1"), (tmp_path / "daemon.out").read_text()
+        assert d.ctl("stage", "cut")[0] == 0  # a stage change is logged (and the log fails)
+        st = d.req({"cmd": "status"})
+        assert st["ok"] and any("No space left" in a for a in st["alarms"]), st["alarms"]
+        t0 = time.monotonic()
+        d.notify.pump(1.5)
+        assert d.notify.count("WATCHDOG", t0) >= 1  # still supervising
+        assert d.ctl("stage", "explore")[0] == 0
+    finally:
+        d.stop()

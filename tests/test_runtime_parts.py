@@ -216,3 +216,32 @@ def test_whole_arc_check_names_the_joint_the_limit_and_the_reachable_part():
     fast = check_path(arc, 20 * DEG, PathLimits(400 * DEG, 2000 * DEG, 20000 * DEG), kin, Q_START)
     assert not fast.ok and "velocity" in fast.problem.reason and fast.problem.joint is not None
     assert fast.problem.s <= 2 * DEG  # at once: every joint speed scales with the path speed
+
+
+def test_an_arc_the_arm_cannot_complete_is_refused_before_moving_or_shortened():
+    import dataclasses
+
+    from supervisor.errors import SupervisorError
+    from supervisor.motion.paths import start_camera_pose
+    from supervisor.runtime.builder import Supervisor, open_drivers
+
+    cfg = load_config(None)
+    st = dataclasses.replace(cfg.stage("explore"), hard_limit=170 * DEG)
+    drivers = open_drivers(cfg)
+    sup = Supervisor(cfg, drivers, EventLog(None), stage=st)
+    scene_pivot = drivers.camera.pivot_base
+    T0, _, _ = drivers.camera.start_view()
+    sup.move_camera_to(T0)
+    sup.use_model(None, T0)  # planning needs only the model view
+    q_before = drivers.robot.state().q.copy()
+    with pytest.raises(SupervisorError) as err:
+        sup.plan_arc(scene_pivot, 0.0)
+    text = str(err.value)
+    assert "cannot complete the arc to 170.00 deg" in text and "reachable part: 0-" in text
+    assert ("joint" in text and "limit" in text) or "unreachable" in text
+    assert np.array_equal(drivers.robot.state().q, q_before)  # nothing moved
+    plan = sup.plan_arc(scene_pivot, 0.0, accept_reachable=True)
+    assert 0 < plan.s_end < 170 * DEG and plan.s_end == pytest.approx(plan.check.reachable)
+    assert sup.events.of_kind("motion_shortened")
+    sup.close()
+    drivers.close()

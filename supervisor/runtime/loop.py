@@ -442,6 +442,7 @@ class SupervisorLoop:
             self._rest_t = st.t  # frames from here on: the robot-state history covers their exposure
         else:
             self._target_s = self.s_end
+            self._rest_t = st.t  # the first frame must be exposed within the robot-state history
         self.pacer.start()
         interrupted = 0
         while self._phase is not Phase.HALTED:
@@ -574,7 +575,7 @@ class SupervisorLoop:
         if self._phase is not Phase.MOVING:
             return
         if now >= self._next_frame_t and not at_rest:
-            got = self._grab(now)
+            got = self._grab(now, not_before=self._rest_t)
             if got is False:
                 return
             if got:
