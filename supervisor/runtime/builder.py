@@ -42,6 +42,44 @@ from supervisor.runtime.worker import InlineWorker, ProcessWorker, ThreadWorker
 from supervisor.stages import StageConfig
 
 
+class LockedRobot:
+    """A robot driver behind one lock: safe to call from the tick and from a capture thread."""
+
+    def __init__(self, inner: RobotDriver) -> None:
+        self.inner = inner
+        self._lock = threading.Lock()
+
+    @property
+    def control_period(self) -> float:
+        return self.inner.control_period
+
+    def state(self):
+        with self._lock:
+            return self.inner.state()
+
+    def command(self, q: np.ndarray) -> None:
+        with self._lock:
+            self.inner.command(q)
+
+    def stop(self) -> None:
+        with self._lock:
+            self.inner.stop()
+
+    def close(self) -> None:
+        with self._lock:
+            self.inner.close()
+
+    def __getattr__(self, name: str):  # driver extras (recover, reconnect, ...): the same lock
+        attr = getattr(self.inner, name)
+        if not callable(attr):
+            return attr
+
+        def locked(*args, **kwargs):
+            with self._lock:
+                return attr(*args, **kwargs)
+        return locked
+
+
 @dataclass
 class Drivers:
     """What the supervisor runs on: the arm, the camera, the arm's kinematics and the clock they share."""
@@ -71,7 +109,9 @@ def open_drivers(cfg: Config, *, realtime: bool = False, scene: str | None = Non
 
     clock: Clock = MonotonicClock() if realtime else SimClock()
     kin = PandaKinematics(T_flange_cam=cfg.camera.T_flange_cam, urdf=cfg.robot.urdf, arm=cfg.robot.arm)
-    robot = ROBOTS.load(cfg.robot.driver).from_config(cfg, kin=kin, clock=clock)
+    # The sim camera reads the robot from its capture thread: every call goes through one lock, so a driver
+    # (libfranka's robot object, the sim's state) is never used by two threads at once.
+    robot = LockedRobot(ROBOTS.load(cfg.robot.driver).from_config(cfg, kin=kin, clock=clock))
     try:
         camera = CAMERAS.load(cfg.camera.driver).from_config(cfg, clock=clock, robot=robot, kin=kin, scene=scene,
                                                              seed=seed)
