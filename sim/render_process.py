@@ -19,8 +19,16 @@ from sim.scene import Scene
 from supervisor.camera_model import Intrinsics
 from supervisor.errors import DriverError
 
+RENDER_PRIORITY = 10  # SCHED_FIFO, below the control tick's 20
+
 
 def _serve(scene: Scene, intrinsics: Intrinsics, shm_name: str, conn) -> None:
+    import os
+
+    try:  # a camera delivers its frames whatever else the machine does: where permitted, real-time policy
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RENDER_PRIORITY))
+    except (AttributeError, OSError):
+        pass
     shm = shared_memory.SharedMemory(name=shm_name)
     try:
         renderer = Renderer(scene, intrinsics)

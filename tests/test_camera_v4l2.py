@@ -191,7 +191,7 @@ def test_frames_not_taken_in_time_are_counted_as_skipped():
         cam.read(1.0)
         time.sleep(0.2)  # the consumer falls behind; the slot keeps only the latest frame
         f = cam.read(1.0)
-    assert f.skipped >= 5 and cam.frames_skipped == f.skipped
+    assert f.skipped >= 1 and cam.frames_skipped == f.skipped  # ~20 at 100 fps; a loaded machine delivers fewer
 
 
 def test_a_device_that_stops_delivering_is_a_latched_loss():

@@ -85,6 +85,23 @@ class DaemonProc:
             time.sleep(0.05)
         return False
 
+    def start_moving(self, attempts: int = 3) -> None:
+        """Arm and run a continuous arc until it is seen moving (a loaded machine may fault a run at once:
+        a camera timeout is a correct, latched halt, but then there is nothing moving to stop; rearm, retry)."""
+        for _ in range(attempts):
+            st = self.req({"cmd": "status"})
+            if st["state"] == "halted":
+                assert self.ctl("rearm")[0] == 0
+            elif st["state"] == "idle":
+                assert self.ctl("arm")[0] == 0
+            assert self.ctl("run", "--azimuth", "90")[0] == 0
+            if self.wait_state("moving", 20):
+                time.sleep(0.5)
+                if self.req({"cmd": "status"})["state"] == "moving":
+                    return
+            self.ctl("wait", "--timeout", "60")
+        raise AssertionError(f"no run stayed moving in {attempts} attempts: {self.req({'cmd': 'status'})}")
+
     def events(self) -> list[dict]:
         return [json.loads(x) for x in (self.logs / "events.jsonl").read_text().splitlines()]
 
@@ -172,27 +189,20 @@ def test_build_arm_run_wait_halts_within_the_allowance_and_stage_is_refused_whil
 
 @pytest.mark.slow
 def test_stop_mid_motion_brakes_at_once(daemon):
-    st = daemon.req({"cmd": "status"})
-    if st["model"] is None:
+    if daemon.req({"cmd": "status"})["model"] is None:
         assert daemon.ctl("model", "build")[0] == 0
-    if st["state"] == "halted":
-        assert daemon.ctl("rearm")[0] == 0
-    elif st["state"] == "idle":
-        assert daemon.ctl("arm")[0] == 0
     assert daemon.ctl("stage", "explore_continuous")[0] == 0  # moves continuously: easy to catch moving
-    assert daemon.ctl("run", "--azimuth", "90")[0] == 0
-    assert daemon.wait_state("moving", 20)
-    time.sleep(1.0)
+    daemon.start_moving()
     rc, reply = daemon.ctl("stop")
     assert rc == 0 and reply["braking"] is True
     rc, done = daemon.ctl("wait", "--timeout", "60")
     assert rc == 0
     s = done["summary"]
-    assert s["halt_reason"] in ("stop:operator",) or s["halt_reason"].startswith("fault:"), s
+    assert s["halt_reason"] == "stop:operator", s
     assert s["max_overshoot_deg"] <= 1e-6
     brake = [e for e in daemon.events() if e["kind"] == "brake"][-1]
     stop = [e for e in daemon.events() if e["kind"] == "stop_request"][-1]
-    assert brake["t"] - stop["t"] < 0.05  # braking began within a few ticks of the request
+    assert brake["reason"] == "stop:operator" and brake["t"] - stop["t"] < 0.05  # within a few ticks
 
 
 @pytest.mark.slow
@@ -218,10 +228,7 @@ def test_sigterm_mid_motion_brakes_flushes_and_exits_0(tmp_path):
         assert d.notify.wait_for("READY", "1"), (tmp_path / "daemon.out").read_text()
         assert d.ctl("model", "build")[0] == 0
         assert d.ctl("stage", "explore_continuous")[0] == 0
-        assert d.ctl("arm")[0] == 0
-        assert d.ctl("run", "--azimuth", "90")[0] == 0
-        assert d.wait_state("moving", 20)
-        time.sleep(1.0)
+        d.start_moving()
         t0 = time.monotonic()
         d.proc.send_signal(signal.SIGTERM)
         rc = d.proc.wait(10)
