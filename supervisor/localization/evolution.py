@@ -220,6 +220,12 @@ class _Run:
         self.n_comp = int(frame.labels.max()) + 1 if len(frame.labels) else 0
         self.nodes: list[Node] = []
         self.evaluations = 0
+        lo, hi = P.min(axis=0), P.max(axis=0)
+        self.extremes = np.array([[(lo, hi)[i >> k & 1][k] for k in range(3)] for i in range(8)])
+        x0 = np.zeros((1, 6))
+        self.extremes_root = self._project(x0, self.extremes)[0][0]
+        uv0 = self._project(x0, P[self.pm])[0][0]
+        self.root_dist = np.hypot(*(frame.keypoints[self.pk] - uv0).T)
 
     # -- quality ---------------------------------------------------------------------------
     def _project(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -233,15 +239,23 @@ class _Run:
     def assign(self, X: np.ndarray, sigma: float) -> tuple[np.ndarray, ...]:
         """Matched pairs per candidate after the direction-advantage assignment:
         (candidate, pair index, distance) arrays, one entry per matched model point."""
-        uv, z = self._project(X, self.f.points[self.pm])
-        d = self.f.keypoints[self.pk][None] - uv
+        # Only pairs that some candidate can bring within sigma: within sigma + (the candidates' largest
+        # image displacement of the model's extreme points) of their projection under the root pose.
+        ext, _ = self._project(X, self.extremes)
+        shift = float(np.max(np.hypot(*(ext - self.extremes_root[None]).transpose(2, 0, 1))))
+        near = np.flatnonzero(self.root_dist <= sigma + shift)
+        uv, z = self._project(X, self.f.points[self.pm[near]])
+        d = self.f.keypoints[self.pk[near]][None] - uv
         dist = np.hypot(d[..., 0], d[..., 1])
-        c, j = np.nonzero((z > 1e-6) & (dist <= sigma))
+        c, jn = np.nonzero((z > 1e-6) & (dist <= sigma))
+        j = near[jn]
+        d = d[c, jn]
+        dist = dist[c, jn]
         if len(c) == 0:
             return c, j, np.empty(0)
-        dd = dist[c, j]
+        dd = dist
         S = self.s.sectors
-        sec = (np.floor((np.arctan2(d[c, j, 1], d[c, j, 0]) + np.pi) / (2 * np.pi / S)).astype(int)) % S
+        sec = (np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2 * np.pi / S)).astype(int)) % S
         w = self.pw[j]
         C, Wn = len(X), max(self.n_comp, 1)
         cw = c * Wn + w
@@ -311,16 +325,23 @@ class _Run:
 
     # -- feasible region ------------------------------------------------------------------
     def residuals(self, x: np.ndarray, m_idx: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Reprojection residuals (n, 2) and their Jacobian (n, 2, 6) w.r.t. a left increment (chart units)."""
+        """Reprojection residuals (..., n, 2) and their Jacobian (..., n, 2, 6) w.r.t. a left increment
+        (chart units), for one pose (6,) or a batch (B, 6)."""
         R, t = self.chart.pose(x)
-        Y = self.f.points[m_idx] @ R.T + t
+        Y = np.einsum("...ij,nj->...ni", R, self.f.points[m_idx]) + t[..., None, :]
         fx, fy, cx, cy = self.kf
-        z = np.maximum(Y[:, 2], 1e-6)
-        r = np.column_stack([fx * Y[:, 0] / z + cx, fy * Y[:, 1] / z + cy]) - uv
-        dpi = np.zeros((len(Y), 2, 3))
-        dpi[:, 0, 0], dpi[:, 0, 2] = fx / z, -fx * Y[:, 0] / z ** 2
-        dpi[:, 1, 1], dpi[:, 1, 2] = fy / z, -fy * Y[:, 1] / z ** 2
-        J = np.concatenate([dpi @ -_hat(Y) / self.chart.z, dpi], axis=2)
+        z = np.maximum(Y[..., 2], 1e-6)
+        xz, yz = Y[..., 0] / z, Y[..., 1] / z
+        r = np.stack([fx * xz + cx, fy * yz + cy], -1) - uv
+        iz = 1.0 / z
+        X_, Y_, Z_ = Y[..., 0], Y[..., 1], Y[..., 2]
+        zero = np.zeros_like(z)
+        # d(pi)/dY times dY/d(omega) = -[Y]x (omega in chart units: / zbar), and dY/dv = I
+        du = np.stack([fx * iz, zero, -fx * xz * iz], -1)
+        dv = np.stack([zero, fy * iz, -fy * yz * iz], -1)
+        Yv = np.stack([X_, Y_, Z_], -1)
+        J = np.stack([np.concatenate([np.cross(Yv, du) / self.chart.z, du], -1),
+                      np.concatenate([np.cross(Yv, dv) / self.chart.z, dv], -1)], -2)
         return r, J
 
     def project_to_boundary(self, x: np.ndarray, corr: tuple[np.ndarray, np.ndarray], delta: float) -> np.ndarray:
@@ -343,41 +364,56 @@ class _Run:
                 break
         return xk
 
-    def trajectory(self, x: np.ndarray, corr: tuple[np.ndarray, np.ndarray]) -> list[np.ndarray]:
-        """Huber-LM from x on the best correspondences (eq. 10), every accepted pose recorded."""
+    def trajectories(self, X: np.ndarray, corr: tuple[np.ndarray, np.ndarray]) -> list[list[np.ndarray]]:
+        """Huber-LM from every row of X on the best correspondences (eq. 10), solved as one batch;
+        every accepted pose of each run is recorded (its trajectory)."""
         hub = self.s.huber_px
-        traj = [x]
-        lam = 1e-3
 
-        def cost(r: np.ndarray) -> float:
-            e = np.hypot(r[:, 0], r[:, 1])
-            return float(np.sum(np.where(e <= hub, 0.5 * e * e, hub * (e - 0.5 * hub))))
+        def cost(r: np.ndarray) -> np.ndarray:
+            e = np.hypot(r[..., 0], r[..., 1])
+            return np.sum(np.where(e <= hub, 0.5 * e * e, hub * (e - 0.5 * hub)), axis=-1)
 
+        B = len(X)
+        trajs = [[X[i]] for i in range(B)]
+        x = X.copy()
+        lam = np.full(B, 1e-3)
+        active = np.ones(B, bool)
         r, J = self.residuals(x, *corr)
         c = cost(r)
         for _ in range(self.s.lm_iterations):
-            e = np.hypot(r[:, 0], r[:, 1])
+            if not active.any():
+                break
+            e = np.hypot(r[..., 0], r[..., 1])
             w = np.where(e <= hub, 1.0, hub / np.maximum(e, 1e-12))
-            Jf = J.reshape(-1, 6)
-            wf = np.repeat(w, 2)
-            H = Jf.T @ (Jf * wf[:, None])
-            gvec = Jf.T @ (wf * r.reshape(-1))
-            accepted = False
-            while lam < 1e6:
-                step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), gvec)
-                xn = self.chart.compose(step, traj[-1])
+            Jf = J.reshape(B, -1, 6)
+            Jw = Jf * np.repeat(w, 2, axis=1)[..., None]
+            H = Jw.transpose(0, 2, 1) @ Jf
+            g = (Jw.transpose(0, 2, 1) @ r.reshape(B, -1, 1))[..., 0]
+            accepted = np.zeros(B, bool)
+            for _retry in range(4):
+                todo = active & ~accepted
+                if not todo.any():
+                    break
+                D = H[todo] + lam[todo, None, None] * (np.eye(6) * (np.diagonal(H[todo], axis1=1, axis2=2)[:, None]
+                                                                   + 1e-12))
+                step = -np.linalg.solve(D, g[todo][..., None])[..., 0]
+                xn = self.chart.compose(step, x[todo])
                 rn, Jn = self.residuals(xn, *corr)
                 cn = cost(rn)
-                if cn < c:
-                    traj.append(xn)
-                    r, J, c = rn, Jn, cn
-                    lam = max(lam / 10, 1e-7)
-                    accepted = True
-                    break
-                lam *= 10
-            if not accepted or np.linalg.norm(step) < 1e-8:
-                break
-        return traj
+                better = cn < c[todo]
+                idx = np.flatnonzero(todo)
+                for k, i in enumerate(idx):
+                    if better[k]:
+                        x[i], r[i], J[i], c[i] = xn[k], rn[k], Jn[k], cn[k]
+                        trajs[i].append(xn[k])
+                        accepted[i] = True
+                        lam[i] = max(lam[i] / 10, 1e-7)
+                        if np.linalg.norm(step[k]) < 1e-8:
+                            active[i] = False
+                    else:
+                        lam[i] *= 10
+            active &= accepted
+        return trajs
 
     @staticmethod
     def interpolate(trajs: list[list[np.ndarray]]) -> list[np.ndarray]:
@@ -500,8 +536,14 @@ def evolve(frame: Frame, T_start: np.ndarray, settings: EvolutionSettings, rng: 
     def over_budget() -> bool:
         return budget > 0 and clock() - run.t_start > budget
 
+    def progress_of(qv: float, rnd: int) -> float:
+        """Normalised quality progress: the evolution functions' abscissa (and, with
+        progress: quality_or_rounds, at least the fraction of rounds done)."""
+        x = (qv - q_head) / (q_tail - q_head) if q_tail > q_head else 1.0
+        return max(x, (rnd - 1) / max(s.max_rounds - 1, 1)) if s.progress == "quality_or_rounds" else x
+
     for rnd in range(1, s.max_rounds + 1):
-        xq = (float(q.mean()) - q_head) / (q_tail - q_head) if q_tail > q_head else 1.0
+        xq = progress_of(float(q.mean()), rnd)
         progress.append(xq)
         if q.mean() >= q_tail - 1e-9:
             status = EvolutionStatus.CONVERGED
@@ -518,16 +560,16 @@ def evolve(frame: Frame, T_start: np.ndarray, settings: EvolutionSettings, rng: 
         # Feasible region F_i: boundary projection of the parents, LM trajectories, interpolation.
         r_best, _ = run.residuals(best[0], *corr)
         delta = max(par["delta"], 1.05 * math.sqrt(float(np.mean(np.sum(r_best ** 2, axis=1)))))
-        trajs = [run.trajectory(run.project_to_boundary(X[i], corr, delta), corr) for i in range(P)]
-        rmin = min(float(np.mean(np.sum(run.residuals(t[-1], *corr)[0] ** 2, axis=1))) for t in trajs)
+        trajs = run.trajectories(np.array([run.project_to_boundary(X[i], corr, delta) for i in range(P)]), corr)
+        rmin = float(np.min(np.mean(np.sum(run.residuals(np.array([t[-1] for t in trajs]), *corr)[0] ** 2, -1),
+                                    -1)))
         delta = max(par["delta"], 1.05 * math.sqrt(rmin))
         F = np.array([p for t in trajs for p in t] + run.interpolate(trajs))
         # Migration (eq. 14), each parent's lambda from its own quality.
         Xm = np.empty_like(X)
         mig_frac = np.empty(P)
         for i in range(P):
-            xi = (float(q[i]) - q_head) / (q_tail - q_head) if q_tail > q_head else 1.0
-            lam = _schedule(s, xi, delta0)["lambda"]
+            lam = _schedule(s, progress_of(float(q[i]), rnd), delta0)["lambda"]
             V = len(trajs[i]) - 1
             jmax = int(math.floor((1.0 - lam) * V))
             jj = int(rng.integers(0, jmax + 1))
@@ -539,8 +581,7 @@ def evolve(frame: Frame, T_start: np.ndarray, settings: EvolutionSettings, rng: 
         # Offspring (eqs. 15-17).
         kids, kid_parent, kid_vals = [], [], []
         for i in range(P):
-            qi = (float(q[i]) - q_head) / (q_tail - q_head) if q_tail > q_head else 1.0
-            pi = _schedule(s, qi, delta0)
+            pi = _schedule(s, progress_of(float(q[i]), rnd), delta0)
             r, J = run.residuals(Xm[i], *corr)
             Jf, rf = J.reshape(-1, 6), r.reshape(-1)
             length = sum(float(np.linalg.norm(trajs[i][k + 1] - trajs[i][k])) for k in range(len(trajs[i]) - 1))

@@ -19,6 +19,7 @@ ROI_MODES = ("predicted", "off")
 REFINE_MODES = ("robust", "inliers", "evolution")
 EVOLUTION_PARAMS = ("delta", "sigma", "lambda", "scale", "tau", "alpha")  # order of the evolution functions
 EVOLUTION_SCHEDULES = ("linear", "guided")
+EVOLUTION_PROGRESS = ("quality", "quality_or_rounds")
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,10 @@ class EvolutionSettings:
     budget: float = 0.25  # s of wall time per frame; 0 = unlimited (then fully deterministic)
     seed: int = 0
     schedule: str = "linear"  # linear | guided
+    # The evolution functions' abscissa: "quality" (the paper) = the population's quality between its initial
+    # value and min(termination * initial, 1); "quality_or_rounds" (ours) = at least the fraction of max_rounds
+    # done, so the schedules anneal even from a start whose quality already makes that range unreachable.
+    progress: str = "quality"
     guided_model: str = ""  # the fitted guided model's file (schedule guided)
     guided_b: tuple[float, ...] = ()  # its exponents and correlation matrix, read from that file at load time
     guided_W: tuple[tuple[float, ...], ...] = ()
@@ -61,6 +66,8 @@ class EvolutionSettings:
             raise ValueError(f"evolution schedule must be one of {EVOLUTION_SCHEDULES}, got {self.schedule!r}")
         if self.schedule == "guided" and not self.guided_b:
             raise ValueError("evolution schedule 'guided' needs a fitted guided model (guided_model: FILE)")
+        if self.progress not in EVOLUTION_PROGRESS:
+            raise ValueError(f"evolution progress must be one of {EVOLUTION_PROGRESS}, got {self.progress!r}")
         if not self.termination > 1.0:
             raise ValueError(f"evolution termination must be > 1, got {self.termination}")
         if not self.budget >= 0.0:
@@ -118,7 +125,8 @@ class EvolutionSettings:
                                          max=1000.0) / 1000.0,
             budget=node.number("budget_ms", d.budget * 1000, min=0.0, max=60_000.0) / 1000.0,
             seed=node.integer("seed", d.seed, min=0, max=2 ** 63 - 1),
-            schedule=schedule, guided_model="" if guided is None else guided, guided_b=b, guided_W=W,
+            schedule=schedule, progress=node.string("progress", d.progress, choices=EVOLUTION_PROGRESS),
+            guided_model="" if guided is None else guided, guided_b=b, guided_W=W,
         )
         node.done()
         return out
