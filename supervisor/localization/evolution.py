@@ -686,3 +686,53 @@ def _shift(m: tuple[np.ndarray, ...], start: int, n: int) -> tuple[np.ndarray, .
     c, j, dd = m
     sel = (c >= start) & (c < start + n)
     return c[sel] - start, j[sel], dd[sel]
+
+
+# -- the guided model (§2.4) ------------------------------------------------------------------
+
+def guided_samples(result: EvolutionResult) -> tuple[np.ndarray, np.ndarray]:
+    """(x, e): the normalised population progress and the normalised sampled parameter values along the
+    lineage of a run's returned candidate (run with `record=True`): the paper's trajectory T of a good run."""
+    xs, es = [], []
+    k = result.best_node
+    while 0 <= k < len(result.nodes):
+        node = result.nodes[k]
+        if node.values and 1 <= node.round <= len(result.progress):
+            xs.append(result.progress[node.round - 1])
+            es.append([node.values[p] for p in PARAMS])
+        k = node.parent
+    return np.array(xs, float).reshape(-1), np.array(es, float).reshape(-1, len(PARAMS))
+
+
+def b_level(i: int, b0: float = 1.5, p_r: float = 0.5) -> float:
+    """The exponent of guidance level i (the paper's decreasing-integral rule, eqs. 21-22), for
+    e(b) = 1 - x^b: integral(e(b_i)) = integral(e(b_0)) - i p_r (integral(e(1)) - integral(e(b_0)))."""
+    integral = lambda b: b / (b + 1.0)  # noqa: E731
+    target = integral(b0) - i * p_r * (integral(1.0) - integral(b0))
+    if not 0.0 < target < 1.0:
+        raise ValueError(f"guidance level {i} has no exponent (integral {target:g})")
+    return target / (1.0 - target)
+
+
+def fit_guided(x: np.ndarray, e: np.ndarray, b0: float = 1.5, p_r: float = 0.5) -> GuidedModel:
+    """Fit the guided model e ~ W^T (1 - x^b) (eq. 20) to samples from good runs, starting from b = b0, W = I."""
+    from scipy.optimize import least_squares
+
+    x = np.clip(np.asarray(x, float), 0.0, 1.0)
+    e = np.asarray(e, float)
+    n = len(PARAMS)
+    if len(x) < 2 * n or e.shape != (len(x), n):
+        raise ValueError(f"guided fit needs at least {2 * n} samples of {n} values, got {e.shape}")
+
+    def resid(theta: np.ndarray) -> np.ndarray:
+        b, W = theta[:n], theta[n:].reshape(n, n)
+        return ((1.0 - x[:, None] ** b[None]) @ W - e).ravel()
+
+    theta0 = np.concatenate([np.full(n, b0), np.eye(n).ravel()])
+    lo = np.concatenate([np.full(n, 0.1), np.full(n * n, -5.0)])
+    hi = np.concatenate([np.full(n, 20.0), np.full(n * n, 5.0)])
+    sol = least_squares(resid, theta0, bounds=(lo, hi), max_nfev=2000)
+    b, W = sol.x[:n], sol.x[n:].reshape(n, n)
+    meta = {"samples": int(len(x)), "rms": float(np.sqrt(np.mean(sol.fun ** 2))), "b0": b0, "p_r": p_r,
+            "next_level_b": b_level(1, b0, p_r)}
+    return GuidedModel(tuple(float(v) for v in b), tuple(tuple(float(v) for v in r) for r in W), meta)

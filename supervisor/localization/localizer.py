@@ -139,6 +139,8 @@ class Localizer:
         self._size = model.image_size  # (w, h)
         # refine: evolution scores poses per component (planar faces of the model, by point index)
         self.components = segment_planes(model.points_target) if s.refine == "evolution" else None
+        self.record_evolution = False  # keep each run's candidates in `last_evolution` (guided-model fitting)
+        self.last_evolution = None
 
     def set_model(self, model: TargetModel) -> None:
         """Swap in a model with the same descriptors (e.g. refined 3D points); the matcher stays."""
@@ -277,7 +279,9 @@ class Localizer:
             pts = cv2.undistortPoints(pts.reshape(-1, 1, 2), self._K, self._dist, P=self._K).reshape(-1, 2)
         frame = Frame(pts, knn_idx, self.model.points_target.astype(np.float64), self.components.labels, self._K)
         T0 = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
-        res = evolve(frame, T0, self.settings.evolution, np.random.default_rng(self.settings.evolution.seed))
+        res = evolve(frame, T0, self.settings.evolution, np.random.default_rng(self.settings.evolution.seed),
+                     record=self.record_evolution)
+        self.last_evolution = res
         T = res.T_cam_target
         return cv2.Rodrigues(T[:3, :3])[0], T[:3, 3].reshape(3, 1), res.status.value
 

@@ -8,6 +8,7 @@ evaluation needs. Outputs are written atomically.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 import os
@@ -128,6 +129,29 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
         if progress:
             progress(k + 1, len(ds.frames))
     return out
+
+
+def guided_training_runs(ds: Dataset, model: TargetModel, settings: LocalizerSettings, every: int = 1,
+                         tol_t: float = 0.002, tol_r: float = math.radians(3.0)) -> tuple[list, int]:
+    """Evolution runs (linear schedule, candidates recorded) on every `every`-th frame with ground truth;
+    returns the good runs (returned pose within tol_t / tol_r of the truth) and the number of runs."""
+    evo = dataclasses.replace(settings.evolution, schedule="linear", guided_b=(), guided_W=())
+    loc = Localizer(model, dataclasses.replace(settings, refine="evolution", guided_radius_px=0.0, evolution=evo))
+    loc.record_evolution = True
+    good, total = [], 0
+    for rec in ds.frames[::max(1, every)]:
+        if rec.T_cam_target_true is None:
+            continue
+        hint = predict_target_pose(rec.T_base_cam(ds.T_flange_cam), model.T_base_cam0, model.T_cam0_target)
+        res = loc.localize(ds.load_image(rec), hint)
+        run = loc.last_evolution
+        if not res.ok or run is None or run.best_node < 0:
+            continue
+        total += 1
+        t_err, r_err = pose_error(res.T_cam_target, rec.T_cam_target_true, ds.reference_point)
+        if t_err <= tol_t and r_err <= tol_r:
+            good.append(run)
+    return good, total
 
 
 def write_atomic(path: Path, data: bytes) -> None:
