@@ -144,8 +144,9 @@ def cmd_evolution_fit_guided(args: argparse.Namespace) -> int:
             xs.append(x)
             es.append(e)
         print(f"{ds.name}: {len(good)} good runs of {total}", file=sys.stderr)
-    if not xs or sum(len(x) for x in xs) < 12:
-        print("error: too few good runs to fit the guided model", file=sys.stderr)
+    n_samples = sum(len(x) for x in xs)
+    if n_samples < 12:
+        print(f"error: too few samples from good runs to fit the guided model ({n_samples} < 12)", file=sys.stderr)
         return EXIT_USAGE
     gm = fit_guided(np.concatenate(xs), np.concatenate(es), args.b0, args.p_r)
     meta = dict(gm.meta, good_runs=n_good, runs=n_runs, datasets=[str(p) for p in args.datasets])
