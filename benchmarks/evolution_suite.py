@@ -64,8 +64,21 @@ def report(evals: dict[str, Path]) -> dict:
         lat = np.array([float(r["latency_ms"]) for r in ok])
         pnp = np.array([float(r["pnp_ms"]) for r in ok])
         out["time_ms"][name] = {"frames": len(ok), "latency_median": float(np.median(lat)),
-                                "latency_p99": float(np.percentile(lat, 99)), "pnp_refine_median": float(np.median(pnp)),
+                                "latency_p99": float(np.percentile(lat, 99)),
+                                "pnp_refine_median": float(np.median(pnp)),
                                 "pnp_refine_p99": float(np.percentile(pnp, 99))}
+        # Is theta_a set by a lost frame (n_i below min_inliers: no pose, which no refinement can change)?
+        # Then it equals the angle of the first position with a lost frame, at both tolerances.
+        first_lost = {}
+        for ds in {r["dataset"] for r in rows if r["dataset"].startswith("arc_")}:
+            pos: dict[int, list] = {}
+            for r in rows:
+                if r["dataset"] == ds:
+                    pos.setdefault(int(r["position"]), []).append(r)
+            lost = [np.mean([float(r["theta_deg"]) for r in rs]) for _, rs in sorted(pos.items())
+                    if any(r["status"] != "OK" for r in rs)]
+            first_lost[ds] = float(lost[0]) if lost else math.inf
+        out.setdefault("first_lost_deg", {})[name] = first_lost
         res = json.loads((d / "results.json").read_text())
         out["theta_a"][name] = {r["name"]: {k: v * (180 / math.pi if r["kind"] == "arc" else 1000)
                                             for k, v in r["actual_boundary"].items()} for r in res["datasets"]}
@@ -80,7 +93,8 @@ def _fmt(v: float | None, nd: int = 3) -> str:
 def report_md(r: dict) -> str:
     names = list(r["bands"])
     lines = ["## Per n_i band: median / p95 over localized frames", "",
-             "| band | system | frames (localized) | E_t mm | E_r deg | iou8 median / p5 |", "|---|---|---|---|---|---|"]
+             "| band | system | frames (localized) | E_t mm | E_r deg | iou8 median / p5 |",
+             "|---|---|---|---|---|---|"]
     for band, *_ in BANDS:
         for n in names:
             b = r["bands"][n][band]
@@ -100,6 +114,12 @@ def report_md(r: dict) -> str:
             continue
         cells = [f"{r['theta_a'][n][ds]['2mm_3deg']:.2f} / {r['theta_a'][n][ds]['4mm_10deg']:.2f}" for n in names]
         lines.append(f"| {ds} | " + " | ".join(cells) + " |")
+    def by_loss(n: str, t: str) -> int:
+        return sum(abs(r["theta_a"][n][ds][t] - lost) < 1e-3 for ds, lost in r["first_lost_deg"][n].items())
+
+    n_arcs = sum(1 for ds in r["theta_a"][names[0]] if ds.startswith("arc_"))
+    lines += ["", f"theta_a set by the first position with a lost frame (no pose to refine), of {n_arcs} arcs: "
+              + "; ".join(f"{n} {by_loss(n, t)} at {t}" for n in names for t in ("2mm_3deg", "4mm_10deg"))]
     lines += ["", "## Ceiling of `supervisor evaluate` (arcs): mean theta_a, earliest theta_a, largest improvement "
               "over static", "", "| system | 2mm_3deg | 4mm_10deg |", "|---|---|---|"]
     for n in names:

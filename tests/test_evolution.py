@@ -108,7 +108,8 @@ def test_evolution_budget_returns_the_best_so_far_with_status_budget():
     frame, T, _ = _frame()
     start = _perturbed(T, 0.5, 2.0)
     ticks = iter(np.arange(0.0, 100.0, 0.01))  # a clock that advances 10 ms per reading
-    r = evolve(frame, start, dataclasses.replace(FAST, budget=0.05), np.random.default_rng(0), clock=lambda: next(ticks))
+    r = evolve(frame, start, dataclasses.replace(FAST, budget=0.05), np.random.default_rng(0),
+               clock=lambda: next(ticks))
     assert r.status is EvolutionStatus.BUDGET
     assert r.rounds < FAST.max_rounds
     assert np.all(np.isfinite(r.T_cam_target)) and pose_error(r.T_cam_target, T)[0] <= pose_error(start, T)[0] * 1.5
@@ -190,7 +191,8 @@ def test_fit_guided_command_then_localize_with_the_guided_schedule(tmp_path):
 
     def config(name: str, evolution: str) -> str:
         text = DEFAULT_CONFIG.read_text().replace("  refine: robust ", "  refine: evolution ")
-        (tmp_path / name).write_text(text.replace("  roi: predicted ", f"  evolution: {{{evolution}}}\n  roi: predicted "))
+        block = f"  evolution: {{{evolution}}}\n  roi: predicted "
+        (tmp_path / name).write_text(text.replace("  roi: predicted ", block))
         return str(tmp_path / name)
 
     ds = write_arc_dataset(tmp_path / "arc", angles_deg=(0.0, 4.0, 8.0), images_per_position=3)

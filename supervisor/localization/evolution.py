@@ -477,11 +477,10 @@ def evolve(frame: Frame, T_start: np.ndarray, settings: EvolutionSettings, rng: 
 
     sigma0 = s.sigma_range[0]
     # Root: visible components and their residuals (the ridge function's reference).
-    n_pts = np.bincount(frame.labels[frame.labels >= 0], minlength=run.n_comp) if run.n_comp else np.zeros(0)
     run.n_visible_points = _points_per_component(run)
     run.visible = np.ones(run.n_comp, bool)
     run.root_res = np.ones(run.n_comp)
-    if run.n_comp == 0 or len(n_pts) == 0:
+    if run.n_comp == 0:
         return result(x0, EvolutionStatus.NOT_RUN, 0, math.nan, math.nan)
     cp_ra, cp_res, _ = run.component_stats(x0[None], sigma0)
     counts = cp_ra[0] * np.maximum(run.n_visible_points, 1)
@@ -509,18 +508,15 @@ def evolve(frame: Frame, T_start: np.ndarray, settings: EvolutionSettings, rng: 
     best_qw = np.full(run.n_comp, -np.inf)
     best_corr: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
-    def update_components(qw: np.ndarray, m: tuple[np.ndarray, ...], offset: int = 0) -> bool:
+    def update_components(qw: np.ndarray, m: tuple[np.ndarray, ...]) -> None:
+        """Reset a component's best (quality and correspondences x_w) when a candidate beats it."""
         c, j, _ = m
-        vis = np.flatnonzero(run.visible)
-        changed = False
-        for col, w in enumerate(vis):
+        for col, w in enumerate(np.flatnonzero(run.visible)):
             k = int(np.argmax(qw[:, col]))
             if qw[k, col] > best_qw[w] + 1e-12:
                 best_qw[w] = qw[k, col]
                 sel = (c == k) & (run.pw[j] == w)
                 best_corr[w] = (run.pm[j[sel]], frame.keypoints[run.pk[j[sel]]])
-                changed = True
-        return changed
 
     update_components(qw, m)
     # delta_0: the mean cp_res of the first parents (the paper's reference)
