@@ -193,6 +193,7 @@ def per_position(rows: list[FrameArtifact], variable: str = "theta") -> list[dic
             # A frame that did not localize counts as an infinite error.
             "t_err_mean": float(np.mean([r.t_err if r.status == "OK" else np.inf for r in rs])),
             "r_err_mean": float(np.mean([r.r_err if r.status == "OK" else np.inf for r in rs])),
+            "iou8_mean": float(np.mean([r.iou8 for r in ok])) if ok else math.nan,  # over localized frames
             "latency_median": float(np.median([r.latency for r in rs])),
         })
     return table
@@ -202,11 +203,12 @@ def format_table(rows: list[FrameArtifact], kind: str) -> str:
     """Human table of n_i and error per position."""
     var, unit, scale = ("theta", "deg", math.degrees(1.0)) if kind == "arc" else ("x", "mm", 1000.0)
     lines = [f"{'pos':>3}  {var + ' [' + unit + ']':>11}  {'n_i mean':>8}  {'ok':>5}  {'E_t [mm]':>9}  "
-             f"{'E_r [deg]':>9}  {'latency [ms]':>12}"]
+             f"{'E_r [deg]':>9}  {'iou8':>6}  {'latency [ms]':>12}"]
     for p in per_position(rows, var):
         lines.append(f"{p['position']:>3}  {p['var'] * scale:>11.2f}  {p['n_mean']:>8.1f}  "
                      f"{p['n_ok']:>2}/{p['n_frames']:<2}  {p['t_err_mean'] * 1000:>9.3f}  "
-                     f"{math.degrees(p['r_err_mean']):>9.3f}  {p['latency_median'] * 1000:>12.1f}")
+                     f"{math.degrees(p['r_err_mean']):>9.3f}  {p['iou8_mean']:>6.3f}  "
+                     f"{p['latency_median'] * 1000:>12.1f}")
     return "\n".join(lines)
 
 
