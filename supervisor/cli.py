@@ -153,6 +153,41 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_evolution_fit_guided(args: argparse.Namespace) -> int:
+    """Fit the viewpoint evolution's guided model (paper 2, eq. 20) from good linear-schedule runs."""
+    import json
+
+    import numpy as np
+
+    from supervisor.dataset.format import Dataset
+    from supervisor.localization import offline
+    from supervisor.localization.evolution import fit_guided, guided_samples
+
+    cfg = _config(args)
+    xs, es, n_good, n_runs = [], [], 0, 0
+    for path in args.datasets:
+        ds = Dataset.open(path)
+        model = offline.model_from_dataset(ds, cfg.localization)
+        good, total = offline.guided_training_runs(ds, model, cfg.localization, args.every,
+                                                   args.tolerance_mm / 1000.0, math.radians(args.tolerance_deg))
+        n_good, n_runs = n_good + len(good), n_runs + total
+        for run in good:
+            x, e = guided_samples(run)
+            xs.append(x)
+            es.append(e)
+        print(f"{ds.name}: {len(good)} good runs of {total}", file=sys.stderr)
+    n_samples = sum(len(x) for x in xs)
+    if n_samples < 12:
+        print(f"error: too few samples from good runs to fit the guided model ({n_samples} < 12)", file=sys.stderr)
+        return EXIT_USAGE
+    gm = fit_guided(np.concatenate(xs), np.concatenate(es), args.b0, args.p_r)
+    meta = dict(gm.meta, good_runs=n_good, runs=n_runs, datasets=[str(p) for p in args.datasets])
+    out = Path(args.output)
+    offline.write_atomic(out, json.dumps(dict(gm.to_json(), meta=meta), indent=1).encode())
+    print(f"wrote guided model {out}: b = {', '.join(f'{v:.2f}' for v in gm.b)} ({n_good} good runs of {n_runs})")
+    return 0
+
+
 def cmd_dry_run(args: argparse.Namespace) -> int:
     """The product's main job: one gated arc on the sim robot with the synthetic camera and the real pipeline."""
     from supervisor.dryrun import DryRunSpec, load_motion, run_dry_run, run_replay
@@ -398,6 +433,18 @@ def build_parser() -> argparse.ArgumentParser:
     ch.add_argument("--board", default=None, help="SXxSY:SQUARE_MM:MARKER_MM:DICT (default: the recording's)")
     ch.set_defaults(func=cmd_calibrate_hand_eye)
 
+    evo = sub.add_parser("evolution", help="viewpoint-evolution refinement (localization.refine: evolution)")
+    evs = evo.add_subparsers(dest="sub", required=True)
+    fg = evs.add_parser("fit-guided", help="fit the guided model (power-law evolution functions) from good runs")
+    fg.add_argument("datasets", nargs="+", help="datasets with ground truth")
+    fg.add_argument("-o", "--output", required=True, help="guided-model JSON (localization.evolution.guided_model)")
+    fg.add_argument("--every", type=int, default=1, help="use every N-th frame")
+    fg.add_argument("--tolerance-mm", type=float, default=2.0, help="a good run ends within this translation error")
+    fg.add_argument("--tolerance-deg", type=float, default=3.0, help="... and this rotation error")
+    fg.add_argument("--b0", type=float, default=1.5, help="initial exponent b_0 (the paper's 1.5)")
+    fg.add_argument("--p-r", dest="p_r", type=float, default=0.5, help="the paper's p_r (next guidance level)")
+    fg.set_defaults(func=cmd_evolution_fit_guided)
+
     de = sub.add_parser("demo", help="quick dataset + localization table (the default main job)")
     de.add_argument("-o", "--out", default="out/demo")
     de.add_argument("--azimuth", type=_finite, default=90.0)
@@ -408,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    for name in ("images_per_position", "jobs"):
+    for name in ("images_per_position", "jobs", "every"):
         v = getattr(args, name, None)
         if v is not None and v < 1:
             print(f"error: --{name.replace('_', '-')} must be >= 1, got {v}", file=sys.stderr)

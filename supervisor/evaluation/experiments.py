@@ -25,7 +25,7 @@ import multiprocessing
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +70,8 @@ class DatasetResult:
     guard_stop: dict[str, float]  # per tolerance: where the consistency guard stops (inf: never)
     positions: list[float]
     n_mean: list[float]
+    # paper 2's metric per position: mean iou8 over the localized frames (nan where none localized)
+    iou8_mean: list[float] = field(default_factory=list)
 
 
 def _per_position(rows, kind: str):
@@ -149,7 +151,13 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     curve = mlp.fit_curve(xs_si, np.concatenate(nsamp[:k_lr]))
     stops["mlp"] = [mlp.boundary_of(curve, nt, float(x[k_lr - 1])) if curve is not None else float(x[k_lr - 1])
                     for nt in N_T]
-    return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp])
+    iou: dict[int, list[float]] = {}
+    for r in rows:
+        if r.status == "OK" and math.isfinite(r.iou8):
+            iou.setdefault(r.position, []).append(r.iou8)
+    iou8_mean = [float(np.mean(iou[p])) if p in iou else math.nan for p in sorted({r.position for r in rows})]
+    return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
+                         iou8_mean)
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:
@@ -256,7 +264,8 @@ def run_evaluation(cfg: Config, bench_dir: str | Path, out: str | Path, jobs: in
     report = {
         "config_sha256": cfg.sha256,
         "datasets": [{"name": r.name, "kind": r.kind, "actual_boundary": r.actual, "positions": r.positions,
-                      "n_mean": r.n_mean} for r in results],
+                      "n_mean": r.n_mean, "iou8_mean": [None if math.isnan(v) else v for v in r.iou8_mean]}
+                     for r in results],
         "arc": _curves(results, "arc"),
         "line": _curves(results, "line"),
         "ceiling": {"arc": _ceiling(results, "arc"), "line": _ceiling(results, "line")},

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from supervisor.geometry import inv_T, make_T
+from supervisor.localization.components import segment_planes
 from supervisor.localization.features import DescriptorMatcher, FeatureExtractor, Roi, guided_matches
 from supervisor.localization.model import TargetModel
 from supervisor.localization.settings import LocalizerSettings
@@ -108,6 +109,7 @@ class LocalizationResult:
     # ratio-test correspondences: (image points Nx2 px, model point indices N), for model refinement
     matches: tuple[np.ndarray, np.ndarray] | None = None
     n_guided: int = 0  # matches found by projection for the guided polish (0 when off or too few)
+    refine_status: str = ""  # refine: evolution -> how the evolution ended (e.g. "budget": time ran out)
 
     @property
     def ok(self) -> bool:
@@ -135,6 +137,10 @@ class Localizer:
         self._K = model.intrinsics.K
         self._dist = model.intrinsics.dist_coeffs
         self._size = model.image_size  # (w, h)
+        # refine: evolution scores poses per component (planar faces of the model, by point index)
+        self.components = segment_planes(model.points_target) if s.refine == "evolution" else None
+        self.record_evolution = False  # keep each run's candidates in `last_evolution` (guided-model fitting)
+        self.last_evolution = None
 
     def set_model(self, model: TargetModel) -> None:
         """Swap in a model with the same descriptors (e.g. refined 3D points); the matcher stays."""
@@ -189,12 +195,14 @@ class Localizer:
         n_matches = int(len(qi))
         img = kp[qi].astype(np.float64)  # matched image points (PnP input; also returned for model refinement)
 
+        refine_status = ""
+
         def done(status: Status, T: np.ndarray | None, n_in: int, err: float, why: str = "",
                  n_guided: int = 0) -> LocalizationResult:
             timings.setdefault("pnp", 0.0)
             timings["total"] = time.perf_counter() - t0
             return LocalizationResult(status, T, n_in, n_matches, int(len(kp)), err, timings, roi, why,
-                                      (img, np.asarray(ti)), n_guided)
+                                      (img, np.asarray(ti)), n_guided, refine_status)
 
         if n_matches < max(4, self.settings.min_inliers):
             return done(Status.NO_MATCHES, None, 0, math.nan, f"{n_matches} matches")
@@ -219,6 +227,10 @@ class Localizer:
         rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], self._K, self._dist, rvec, tvec)
         if s.refine == "robust":
             rvec, tvec = refine_pose_robust(obj, img, self._K, self._dist, rvec, tvec, s.refine_scale_px)
+        elif s.refine == "evolution" and knn is not None:
+            t3 = time.perf_counter()
+            rvec, tvec, refine_status = self._evolve(kp, knn[0], rvec, tvec)
+            timings["evolution"] = time.perf_counter() - t3
         n_guided = 0
         if s.guided_radius_px > 0.0:
             rvec, tvec, n_guided = self._guided_polish(kp, knn, rvec, tvec)
@@ -256,6 +268,22 @@ class Localizer:
         rvec, tvec = refine_pose_robust(P[mi], kp[ki].astype(np.float64), self._K, self._dist, rvec, tvec,
                                         s.refine_scale_px)
         return rvec, tvec, int(len(ki))
+
+    def _evolve(self, kp: np.ndarray, knn_idx: np.ndarray, rvec: np.ndarray, tvec: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, str]:
+        """Viewpoint-evolution refinement from RANSAC's pose (evolution.py); n_i stays RANSAC's count."""
+        from supervisor.localization.evolution import Frame, evolve
+
+        pts = kp.astype(np.float64)
+        if np.any(self._dist):
+            pts = cv2.undistortPoints(pts.reshape(-1, 1, 2), self._K, self._dist, P=self._K).reshape(-1, 2)
+        frame = Frame(pts, knn_idx, self.model.points_target.astype(np.float64), self.components.labels, self._K)
+        T0 = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        res = evolve(frame, T0, self.settings.evolution, np.random.default_rng(self.settings.evolution.seed),
+                     record=self.record_evolution)
+        self.last_evolution = res
+        T = res.T_cam_target
+        return cv2.Rodrigues(T[:3, :3])[0], T[:3, 3].reshape(3, 1), res.status.value
 
     def _check_image(self, image: object) -> tuple[np.ndarray | None, str]:
         if not isinstance(image, np.ndarray):

@@ -8,6 +8,7 @@ evaluation needs. Outputs are written atomically.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 import os
@@ -23,6 +24,7 @@ from supervisor.dataset.format import Dataset
 from supervisor.errors import DatasetError
 from supervisor.geometry import pose_error
 from supervisor.localization.artifacts import translation_from_start, viewing_angle
+from supervisor.localization.components import mean_iou8, segment_planes
 from supervisor.localization.fiducial import BoardSpec
 from supervisor.localization.localizer import Localizer, Status, predict_target_pose
 from supervisor.localization.model import BoxROI, TargetModel, build_model
@@ -31,7 +33,7 @@ from supervisor.localization.settings import LocalizerSettings
 
 CSV_COLUMNS = ["frame", "position", "theta_deg", "x_mm", "n_inliers", "n_matches", "t_err_mm", "r_err_deg",
                "reproj_px", "status", "latency_ms", "clahe_ms", "sift_ms", "match_ms", "pnp_ms", "roi",
-               "drift_mm", "drift_deg"]
+               "drift_mm", "drift_deg", "iou8"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +57,8 @@ class FrameArtifact:
     # against the model-time target pose (translation at the model points' centroid; nan if not localized).
     drift_t: float = math.nan  # m
     drift_r: float = math.nan  # rad
+    # Paper 2's metric: mean IoU of each model component's projected 8-corner box, estimated vs true pose.
+    iou8: float = math.nan
 
     def row(self) -> list[object]:
         ms = lambda k: f"{self.timings.get(k, float('nan')) * 1000:.2f}"  # noqa: E731
@@ -62,7 +66,7 @@ class FrameArtifact:
                 self.n_inliers, self.n_matches, f"{self.t_err * 1000:.4f}", f"{math.degrees(self.r_err):.4f}",
                 f"{self.reproj_px:.3f}", self.status, f"{self.latency * 1000:.2f}", ms("clahe"), ms("sift"),
                 ms("match"), ms("pnp"), "" if self.roi is None else "x".join(map(str, self.roi)),
-                f"{self.drift_t * 1000:.4f}", f"{math.degrees(self.drift_r):.4f}"]
+                f"{self.drift_t * 1000:.4f}", f"{math.degrees(self.drift_r):.4f}", f"{self.iou8:.4f}"]
 
 
 def model_from_dataset(ds: Dataset, settings: LocalizerSettings) -> TargetModel:
@@ -90,6 +94,8 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
     out: list[FrameArtifact] = []
     T_base_target_model, centroid = model.T_base_target, model.centroid
     T_start = ds.frames[0].T_base_cam(ds.T_flange_cam)
+    components = segment_planes(model.points_target)  # from the model as built (labels survive refinement)
+    K, dist = model.intrinsics.K, model.intrinsics.dist_coeffs
     prev: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target) of the last success
     for k, rec in enumerate(ds.frames):
         T_base_cam = rec.T_base_cam(ds.T_flange_cam)
@@ -108,20 +114,44 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
         res = loc.localize(ds.load_image(rec), hint)
         if refiner is not None and res.matches is not None:
             refiner.add(T_base_cam, *res.matches)
-        t_err = r_err = drift_t = drift_r = float("nan")
+        t_err = r_err = drift_t = drift_r = iou8 = float("nan")
         if res.status is Status.OK:
             prev = (T_base_cam, res.T_cam_target)
             drift_t, drift_r = pose_error(T_base_cam @ res.T_cam_target, T_base_target_model, centroid)
             if rec.T_cam_target_true is not None:
                 t_err, r_err = pose_error(res.T_cam_target, rec.T_cam_target_true, ds.reference_point)
+                iou8 = mean_iou8(components, res.T_cam_target, rec.T_cam_target_true, K, dist)
         out.append(FrameArtifact(rec.index, rec.position, viewing_angle(model.T_base_cam0, T_base_cam),
                                  translation_from_start(T_start, T_base_cam), res.n_inliers, res.n_matches,
                                  t_err, r_err, res.reprojection_error_px, res.status.name,
                                  res.timings.get("total", float("nan")), dict(res.timings), res.roi,
-                                 drift_t, drift_r))
+                                 drift_t, drift_r, iou8))
         if progress:
             progress(k + 1, len(ds.frames))
     return out
+
+
+def guided_training_runs(ds: Dataset, model: TargetModel, settings: LocalizerSettings, every: int = 1,
+                         tol_t: float = 0.002, tol_r: float = math.radians(3.0)) -> tuple[list, int]:
+    """Evolution runs (linear schedule, candidates recorded) on every `every`-th frame with ground truth;
+    returns the good runs (returned pose within tol_t / tol_r of the truth) and the number of runs."""
+    evo = dataclasses.replace(settings.evolution, schedule="linear", guided_b=(), guided_W=())
+    loc = Localizer(model, dataclasses.replace(settings, refine="evolution", guided_radius_px=0.0, evolution=evo))
+    loc.record_evolution = True
+    good, total = [], 0
+    for rec in ds.frames[::max(1, every)]:
+        if rec.T_cam_target_true is None:
+            continue
+        hint = predict_target_pose(rec.T_base_cam(ds.T_flange_cam), model.T_base_cam0, model.T_cam0_target)
+        res = loc.localize(ds.load_image(rec), hint)
+        run = loc.last_evolution
+        if not res.ok or run is None or run.best_node < 0:
+            continue
+        total += 1
+        t_err, r_err = pose_error(res.T_cam_target, rec.T_cam_target_true, ds.reference_point)
+        if t_err <= tol_t and r_err <= tol_r:
+            good.append(run)
+    return good, total
 
 
 def write_atomic(path: Path, data: bytes) -> None:
@@ -163,6 +193,7 @@ def per_position(rows: list[FrameArtifact], variable: str = "theta") -> list[dic
             # A frame that did not localize counts as an infinite error.
             "t_err_mean": float(np.mean([r.t_err if r.status == "OK" else np.inf for r in rs])),
             "r_err_mean": float(np.mean([r.r_err if r.status == "OK" else np.inf for r in rs])),
+            "iou8_mean": float(np.mean([r.iou8 for r in ok])) if ok else math.nan,  # over localized frames
             "latency_median": float(np.median([r.latency for r in rs])),
         })
     return table
@@ -172,11 +203,12 @@ def format_table(rows: list[FrameArtifact], kind: str) -> str:
     """Human table of n_i and error per position."""
     var, unit, scale = ("theta", "deg", math.degrees(1.0)) if kind == "arc" else ("x", "mm", 1000.0)
     lines = [f"{'pos':>3}  {var + ' [' + unit + ']':>11}  {'n_i mean':>8}  {'ok':>5}  {'E_t [mm]':>9}  "
-             f"{'E_r [deg]':>9}  {'latency [ms]':>12}"]
+             f"{'E_r [deg]':>9}  {'iou8':>6}  {'latency [ms]':>12}"]
     for p in per_position(rows, var):
         lines.append(f"{p['position']:>3}  {p['var'] * scale:>11.2f}  {p['n_mean']:>8.1f}  "
                      f"{p['n_ok']:>2}/{p['n_frames']:<2}  {p['t_err_mean'] * 1000:>9.3f}  "
-                     f"{math.degrees(p['r_err_mean']):>9.3f}  {p['latency_median'] * 1000:>12.1f}")
+                     f"{math.degrees(p['r_err_mean']):>9.3f}  {p['iou8_mean']:>6.3f}  "
+                     f"{p['latency_median'] * 1000:>12.1f}")
     return "\n".join(lines)
 
 

@@ -16,7 +16,120 @@ from supervisor.yamlschema import Node
 MATCHERS = ("flann", "bf")
 PNP_METHODS = ("usac_magsac", "epnp", "p3p", "ap3p", "iterative")
 ROI_MODES = ("predicted", "off")
-REFINE_MODES = ("robust", "inliers")
+REFINE_MODES = ("robust", "inliers", "evolution")
+EVOLUTION_PARAMS = ("delta", "sigma", "lambda", "scale", "tau", "alpha")  # order of the evolution functions
+EVOLUTION_SCHEDULES = ("linear", "guided")
+EVOLUTION_PROGRESS = ("quality", "quality_or_rounds")
+
+
+@dataclass(frozen=True)
+class EvolutionSettings:
+    """`localization.evolution`: viewpoint-evolution refinement (supervisor/localization/evolution.py).
+
+    Defaults are the paper's (Zhao et al. 2024, §3.1 (2)): P 10 x C 5, lambda 0.5 -> 0.05,
+    s 0.10 -> 0.001, tau 20 deg -> 0, alpha 0.3 -> 0, sigma 25 -> 5 px, termination 4.0,
+    {vp_q0, vp_q1} = {0.1, 0.7}. Values the paper does not give are marked (ours).
+    """
+
+    parents: int = 10
+    children: int = 5
+    lambda_range: tuple[float, float] = (0.5, 0.05)  # migration factor, initial -> final
+    scale_range: tuple[float, float] = (0.10, 0.001)  # scale disturbance s
+    tau_range: tuple[float, float] = (math.radians(20.0), 0.0)  # cone angle, rad
+    alpha_range: tuple[float, float] = (0.3, 0.0)  # relaxed-projection factor
+    sigma_range: tuple[float, float] = (25.0, 5.0)  # search radius, px
+    termination: float = 4.0  # eps: stop when the parents' mean quality reaches min(eps * initial, 1)
+    vpq: tuple[float, float] = (0.1, 0.7)  # ridge-function measurement points {vp_q0, vp_q1}
+    explore_probability: float = 0.2  # p_e (ours: the paper gives no value)
+    sectors: int = 8  # slope ranges of the direction advantage (ours)
+    max_rounds: int = 12  # the paper caps rounds at 11 (Table 5) and reports 8-12 on average
+    patience: int = 4  # rounds without a better candidate before stopping (ours)
+    lm_iterations: int = 8  # Huber-LM steps per recorded trajectory (ours)
+    huber_px: float = 1.0  # (ours)
+    init_rotation: float = math.radians(0.5)  # rad, ellipsoid of the initial population (ours)
+    init_translation: float = 0.002  # m (ours)
+    budget: float = 0.25  # s of wall time per frame; 0 = unlimited (then fully deterministic)
+    seed: int = 0
+    schedule: str = "linear"  # linear | guided
+    # The evolution functions' abscissa: "quality" (the paper) = the population's quality between its initial
+    # value and min(termination * initial, 1); "quality_or_rounds" (ours) = at least the fraction of max_rounds
+    # done, so the schedules anneal even from a start whose quality already makes that range unreachable.
+    progress: str = "quality"
+    guided_model: str = ""  # the fitted guided model's file (schedule guided)
+    guided_b: tuple[float, ...] = ()  # its exponents and correlation matrix, read from that file at load time
+    guided_W: tuple[tuple[float, ...], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.parents < 2 or self.children < 1:
+            raise ValueError(f"evolution needs parents >= 2 and children >= 1, got {self.parents}, {self.children}")
+        if self.schedule not in EVOLUTION_SCHEDULES:
+            raise ValueError(f"evolution schedule must be one of {EVOLUTION_SCHEDULES}, got {self.schedule!r}")
+        if self.schedule == "guided" and not self.guided_b:
+            raise ValueError("evolution schedule 'guided' needs a fitted guided model (guided_model: FILE)")
+        if self.progress not in EVOLUTION_PROGRESS:
+            raise ValueError(f"evolution progress must be one of {EVOLUTION_PROGRESS}, got {self.progress!r}")
+        if not self.termination > 1.0:
+            raise ValueError(f"evolution termination must be > 1, got {self.termination}")
+        if not self.budget >= 0.0:
+            raise ValueError(f"evolution budget must be >= 0, got {self.budget}")
+
+    def initial_final(self) -> dict[str, tuple[float, float]]:
+        """(initial, final) of every evolution function but delta (whose initial value is per frame)."""
+        return {"sigma": self.sigma_range, "lambda": self.lambda_range, "scale": self.scale_range,
+                "tau": self.tau_range, "alpha": self.alpha_range}
+
+    @classmethod
+    def from_node(cls, node: Node) -> EvolutionSettings:
+        d = cls()
+
+        def pair(key: str, default: tuple[float, float], scale: float = 1.0, **kw: float) -> tuple[float, float]:
+            v = node.vector(key, 2, [x / scale for x in default], **kw)
+            return (float(v[0]) * scale, float(v[1]) * scale)
+
+        schedule = node.string("schedule", d.schedule, choices=EVOLUTION_SCHEDULES)
+        guided = node.optional_string("guided_model")
+        b: tuple[float, ...] = ()
+        W: tuple[tuple[float, ...], ...] = ()
+        if schedule == "guided":
+            if guided is None:
+                raise node.error("guided_model", "required when schedule is guided (fit one with "
+                                                 "`supervisor evolution fit-guided`)")
+            from pathlib import Path
+
+            from supervisor.localization.evolution import GuidedModel
+
+            path = Path(guided)
+            if not path.is_absolute() and node.file is not None:
+                path = Path(node.file).parent / path
+            gm = GuidedModel.load(path)
+            b, W = gm.b, gm.W
+        out = cls(
+            parents=node.integer("parents", d.parents, min=2, max=1000),
+            children=node.integer("children", d.children, min=1, max=1000),
+            lambda_range=pair("lambda", d.lambda_range, min=0.0, max=1.0),
+            scale_range=pair("scale", d.scale_range, min=0.0, max=10.0),
+            tau_range=pair("tau_deg", d.tau_range, math.radians(1.0), min=0.0, max=90.0),
+            alpha_range=pair("alpha", d.alpha_range, min=0.0, max=1.0),
+            sigma_range=pair("sigma_px", d.sigma_range, min=0.1, max=1000.0),
+            termination=node.number("termination", d.termination, min=1.0, max=1000.0, min_exclusive=True),
+            vpq=pair("vpq", d.vpq, min=0.0, max=1.0),
+            explore_probability=node.number("explore_probability", d.explore_probability, min=0.0, max=1.0),
+            sectors=node.integer("sectors", d.sectors, min=1, max=64),
+            max_rounds=node.integer("max_rounds", d.max_rounds, min=1, max=1000),
+            patience=node.integer("patience", d.patience, min=1, max=1000),
+            lm_iterations=node.integer("lm_iterations", d.lm_iterations, min=1, max=1000),
+            huber_px=node.number("huber_px", d.huber_px, min=0.0, max=100.0, min_exclusive=True),
+            init_rotation=math.radians(node.number("init_rotation_deg", math.degrees(d.init_rotation), min=0.0,
+                                                   max=45.0)),
+            init_translation=node.number("init_translation_mm", d.init_translation * 1000, min=0.0,
+                                         max=1000.0) / 1000.0,
+            budget=node.number("budget_ms", d.budget * 1000, min=0.0, max=60_000.0) / 1000.0,
+            seed=node.integer("seed", d.seed, min=0, max=2 ** 63 - 1),
+            schedule=schedule, progress=node.string("progress", d.progress, choices=EVOLUTION_PROGRESS),
+            guided_model="" if guided is None else guided, guided_b=b, guided_W=W,
+        )
+        node.done()
+        return out
 
 
 @dataclass(frozen=True)
@@ -101,6 +214,7 @@ class LocalizerSettings:
     roi_margin_px: int = 48
     threads: int = 0  # cv2.setNumThreads at Localizer construction; 0 = leave OpenCV's setting
     model: ModelSettings = field(default_factory=ModelSettings)
+    evolution: EvolutionSettings = field(default_factory=EvolutionSettings)  # used when refine == "evolution"
 
     def __post_init__(self) -> None:
         # Direct construction (tests, dataclasses.replace) gets the same checks as YAML.
@@ -156,6 +270,7 @@ class LocalizerSettings:
             roi_margin_px=node.integer("roi_margin_px", d.roi_margin_px, min=0, max=10_000),
             threads=node.integer("threads", d.threads, min=0, max=256),
             model=ModelSettings.from_node(node.child("model", {})),
+            evolution=EvolutionSettings.from_node(node.child("evolution", {})),
         )
         node.done()
         return out
@@ -169,4 +284,9 @@ class LocalizerSettings:
         """Inverse of `to_dict` (used when reading a model's metadata)."""
         d = dict(d)
         model = ModelSettings(**d.pop("model", {}))
-        return cls(**d, model=model)
+        evo = d.pop("evolution", None)  # absent in models saved before the evolution refinement
+        if evo is None:
+            return cls(**d, model=model)
+        evo = {k: tuple(tuple(r) for r in v) if k == "guided_W" else tuple(v) if isinstance(v, list) else v
+               for k, v in evo.items()}
+        return cls(**d, model=model, evolution=EvolutionSettings(**evo))
