@@ -245,3 +245,21 @@ def test_an_arc_the_arm_cannot_complete_is_refused_before_moving_or_shortened():
     assert sup.events.of_kind("motion_shortened")
     sup.close()
     drivers.close()
+
+
+def test_a_wait_left_over_from_an_earlier_request_does_not_time_out_a_new_one():
+    clock = MonotonicClock()
+    stall = _Stalling(clock, 1)
+    cap = CaptureThread(stall, clock, grab_timeout=5.0)
+    try:
+        assert _wait(lambda: cap.stats.frames == 1)
+        assert cap.take(clock.now(), 0.05) is not None
+        t0 = clock.now()
+        assert cap.take(t0, 0.05) is None  # a wait begins ... and is abandoned (the run ended)
+        later = t0 + 1.0
+        assert cap.take(later, 0.05, not_before=later - 0.01) is None  # a new request: no timeout yet
+        with pytest.raises(CameraTimeout):
+            cap.take(later + 0.06, 0.05, not_before=later - 0.01)
+    finally:
+        stall.release.set()
+        cap.close()

@@ -104,8 +104,8 @@ class CaptureThread:
         if fresh:
             self._waiting_since = None
             return frame
-        if self._waiting_since is None:
-            self._waiting_since = now
+        if self._waiting_since is None or (not_before is not None and self._waiting_since < not_before):
+            self._waiting_since = now  # a new wait (a wait left over from before `not_before` does not count)
         elif now - self._waiting_since > timeout:
             waited = now - self._waiting_since
             self._waiting_since = None

@@ -152,6 +152,7 @@ class SupervisorLoop:
         # `result(job_result)`), e.g. a session recorder. It must only enqueue: it runs in the tick.
         self.observer = observer
         self._hook_failed: set[str] = set()
+        self._faults_seen: set[str] = set()
         self.frames = frames
         self.worker = worker
         self.pacer = pacer if pacer is not None else SimPacer()
@@ -373,7 +374,11 @@ class SupervisorLoop:
 
     # -- faults and halts ----------------------------------------------------------------
     def _fault(self, now: float, kind: str, detail: str) -> None:
-        self.events.emit(now, "fault", fault=kind, detail=detail, s_deg=math.degrees(self.follower.state.s))
+        """One fault event per kind and run (a condition that persists while braking is not logged each
+        tick), then the latched brake."""
+        if kind not in self._faults_seen:
+            self._faults_seen.add(kind)
+            self.events.emit(now, "fault", fault=kind, detail=detail, s_deg=math.degrees(self.follower.state.s))
         self._halt(now, f"fault:{kind}")
 
     def _halt(self, now: float, reason: str) -> None:
