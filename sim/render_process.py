@@ -33,6 +33,7 @@ def _serve(scene: Scene, intrinsics: Intrinsics, shm_name: str, conn) -> None:
     try:
         renderer = Renderer(scene, intrinsics)
         out = np.ndarray((intrinsics.height, intrinsics.width), np.uint8, buffer=shm.buf)
+        conn.send(("ready", None, ()))
         while True:
             msg = conn.recv()
             if msg is None:
@@ -54,7 +55,7 @@ def _serve(scene: Scene, intrinsics: Intrinsics, shm_name: str, conn) -> None:
 class RenderProcess:
     """`Renderer.render` served by a child process (spawned; it never forks a threaded parent)."""
 
-    def __init__(self, scene: Scene, intrinsics: Intrinsics) -> None:
+    def __init__(self, scene: Scene, intrinsics: Intrinsics, start_timeout: float = 60.0) -> None:
         self.scene = scene
         self.intrinsics = intrinsics
         ctx = mp.get_context("spawn")
@@ -65,6 +66,11 @@ class RenderProcess:
         self._proc.start()
         child.close()
         self._closed = False
+        # A new interpreter imports numpy/OpenCV and builds the scene's textures: seconds. Wait here, once,
+        # so the first frame is not mistaken for a stalled camera.
+        if not self._conn.poll(start_timeout) or self._conn.recv()[0] != "ready":
+            self.close()
+            raise DriverError(f"the render process did not start within {start_timeout:.0f} s")
 
     def render(self, T_base_cam: np.ndarray, frame_index: int = 0, noise_seed: int = 0) -> RenderedFrame:
         if self._closed:

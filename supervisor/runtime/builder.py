@@ -16,6 +16,7 @@ deterministic.
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import threading
@@ -308,7 +309,17 @@ class Supervisor:
                 self._loop = loop
             if d.realtime:
                 self.events.emit(d.clock.now(), "realtime", **realtime_thread_setup())
-            record = loop.run(max_time)
+                # The cyclic garbage collector stops every thread for tens of ms on a large heap: collect
+                # now, at rest, and not while the arm moves (the loop's garbage is freed by refcounting).
+                gc.collect()
+                gc.freeze()
+                gc.disable()
+            try:
+                record = loop.run(max_time)
+            finally:
+                if d.realtime:
+                    gc.unfreeze()
+                    gc.enable()
             self.last_pacer = pacer
         finally:
             with self._lock:
