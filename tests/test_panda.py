@@ -139,6 +139,21 @@ def test_unreachable_poses_raise_kinematics_error(kin):
     with pytest.raises(KinematicsError, match="did not converge") as info:
         kin.ik_or_raise(make_T(np.eye(3), [0.9, 0.0, 0.4]), kin.q_ready, "camera")
     assert info.value.result.pos_err > 1e-3
+    # ... and the message says what blocks it: joints held at a limit, or a singularity, by name
+    assert "blocked by" in str(info.value) or "no joint is at a limit" in str(info.value)
+
+
+def test_why_stuck_names_the_joint_at_its_limit_and_a_singularity(kin):
+    q = kin.q_ready.copy()
+    q[3] = kin.q_max[3]  # joint 4 at its upper limit
+    assert "joint 4 at its upper limit" in kin.why_stuck(q, "camera")
+    q = np.zeros(7)
+    q[3], q[5] = kin.q_max[3], kin.q_min[5]  # stretched up: elbow and wrist at their limits, a poor Jacobian
+    sigma = float(np.linalg.svd(kin.jacobian(q, "flange"), compute_uv=False)[-1])
+    text = kin.why_stuck(q, "flange", sigma_singular=2 * sigma)
+    assert "joint 4 at its upper limit" in text and "joint 6 at its lower limit" in text
+    assert f"near a singularity (smallest Jacobian singular value {sigma:.4f})" in text
+    assert "no joint is at a limit" in kin.why_stuck(kin.q_ready, "camera")
 
 
 def test_reach_bound_is_conservative(kin):
