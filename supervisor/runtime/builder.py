@@ -208,8 +208,16 @@ class Supervisor:
         return self.drivers.robot.state().T_base_flange @ self.drivers.kin.T_flange_cam
 
     def move_camera_to(self, T_base_cam: np.ndarray) -> None:
-        """A planned, checked joint move to rest with the camera at `T_base_cam` (setup motions)."""
-        move_camera_to(self.drivers.robot, self.drivers.kin, T_base_cam, self.pacer())
+        """A planned, checked joint move to rest with the camera at `T_base_cam` (setup motions). A driver
+        with a point-to-point move of its own (franka: the controller's planner) makes it; otherwise the
+        Ruckig joint plan is commanded tick by tick."""
+        robot, kin = self.drivers.robot, self.drivers.kin
+        own = getattr(getattr(robot, "inner", robot), "move_to", None)
+        if own is None:
+            move_camera_to(robot, kin, T_base_cam, self.pacer())
+            return
+        q_goal = kin.ik_or_raise(T_base_cam, robot.state().q, "camera")
+        robot.move_to(q_goal)
 
     def frame_at_rest(self, timeout: float | None = None):
         """One new frame exposed after now (the robot is at rest); CameraTimeout if none comes in time
