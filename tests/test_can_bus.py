@@ -137,3 +137,38 @@ def test_external_stop_frames_are_checked_before_they_stop_and_rejects_are_count
         assert not rig.faults
     finally:
         rig.close()
+
+
+def test_status_frames_are_rate_limited_and_carry_theta_allowance_and_inliers():
+    import math
+
+    rig = _Rig("status")
+    try:
+        assert rig.ch.status(10.0, math.radians(12.345), None, 57)
+        assert not rig.ch.status(10.05, math.radians(13.0), None, 50)  # within status_period (100 ms)
+        assert rig.ch.status(10.2, math.radians(700.0), math.radians(20.0), 70000)  # saturated, never refused
+        got = []
+        for _ in range(2):
+            f = rig.plc.recv(1.0)
+            assert f is not None and f.arbitration_id == rig.settings.frames["status"]
+            assert rig.plc_codec.checker("status").check(f.data).ok
+            got.append(rig.plc_codec.decode("status", f.data))
+        assert got[0]["Theta"] == pytest.approx(12.35, abs=0.006) and got[0]["ThetaAllowed"] == "unknown"
+        assert got[0]["NInliers"] == 57
+        assert got[1]["Theta"] == pytest.approx(655.34) and got[1]["ThetaAllowed"] == pytest.approx(20.0)
+        assert got[1]["NInliers"] == 65535 and not rig.faults
+    finally:
+        rig.close()
+
+
+def test_can_monitor_command_needs_a_can_section_and_exits_0_when_never_tripped(tmp_path, capsys):
+    from supervisor.cli import main
+    from supervisor.paths import DEFAULT_CONFIG
+
+    assert main(["can", "monitor"]) == 2
+    assert "no CAN side channel" in capsys.readouterr().err
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(DEFAULT_CONFIG.read_text() + "\ncan:\n  interface: virtual\n  channel: mon-cli\n")
+    assert main(["--config", str(cfg), "can", "monitor", "--duration", "0.2"]) == 0  # no heartbeat yet: no trip
+    assert "not tripped" in capsys.readouterr().out
+    assert main(["--config", str(cfg), "can", "monitor", "--timeout-ms", "0", "--duration", "0.1"]) == 2
