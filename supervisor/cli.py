@@ -287,6 +287,35 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     return 0 if reply.get("ok") else EXIT_USAGE
 
 
+def cmd_can_monitor(args: argparse.Namespace) -> int:
+    """Consume the supervisor's heartbeat; 0 when it never tripped, 1 when it did (2: bad input)."""
+    from supervisor.can.codec import Codec
+    from supervisor.can.channel import open_bus
+    from supervisor.can.monitor import HeartbeatMonitor, run_monitor
+
+    cfg = _config(args)
+    if cfg.can is None:
+        raise SupervisorError(f"{cfg.file}: can: no CAN side channel is configured")
+    timeout = cfg.can.consumer_timeout if args.timeout_ms is None else args.timeout_ms / 1000.0
+    if not timeout > 0:
+        raise SupervisorError(f"--timeout-ms must be > 0, got {args.timeout_ms}")
+    bus = open_bus(cfg.can)
+    bus.open()
+    mon = HeartbeatMonitor(Codec.from_settings(cfg.can), timeout, cfg.can.max_counter_jump,
+                           print_fn=lambda text: print(text, flush=True))
+    print(f"monitoring {bus.name}, heartbeat id 0x{cfg.can.frames['heartbeat']:x}, timeout {timeout * 1000:.0f} ms",
+          flush=True)
+    try:
+        trip = run_monitor(bus, mon, duration=args.duration)
+    except KeyboardInterrupt:
+        trip = mon.trip
+    finally:
+        bus.close()
+    print(f"heartbeats {mon.beats}, stops {mon.stops}, rejected {mon.rejected or 0}, "
+          f"{'TRIPPED' if trip else 'not tripped'}", flush=True)
+    return 1 if trip else 0
+
+
 DRY_RUN_FILES = ("summary.json", "events.jsonl", "timeline.png")
 
 
@@ -417,6 +446,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the target's depth range (cameras without a known start view)")
     ct.set_defaults(func=cmd_ctl)
 
+
+    cn = sub.add_parser("can", help="the CAN side channel").add_subparsers(dest="sub", required=True)
+    cmon = cn.add_parser("monitor", help="consume the heartbeat; print state changes; exit 1 once it trips")
+    cmon.add_argument("--config", default=argparse.SUPPRESS, help="configuration YAML (as before the command)")
+    cmon.add_argument("--timeout-ms", type=_finite, default=None, help="consumer timeout (default: can.consumer_timeout_ms)")
+    cmon.add_argument("--duration", type=_finite, default=None, help="stop after this many seconds (default: until it trips)")
+    cmon.set_defaults(func=cmd_can_monitor)
 
     ca = sub.add_parser("calibrate", help="camera calibration (ChArUco)").add_subparsers(dest="sub", required=True)
     ci = ca.add_parser("intrinsics", help="intrinsics from ChArUco images -> the config's camera section (YAML)")

@@ -24,6 +24,7 @@ from drivers.robot import ROBOTS
 from supervisor.localization.settings import LocalizerSettings
 from supervisor.prediction.models import VARIANTS
 from supervisor.stages import StageConfig, parse_stages
+from supervisor.can.settings import CanSettings, parse_can
 
 from supervisor.paths import DEFAULT_CONFIG
 from supervisor.yamlschema import Node, decode_text, load_yaml_text, read_bounded
@@ -88,6 +89,7 @@ class Config:
     sha256: str
     stages: Mapping[str, StageConfig] = field(default_factory=dict)
     default_stage: str = ""
+    can: CanSettings | None = None  # the CAN side channel (`can:`; absent or null: none)
 
     def stage(self, name: str | None = None) -> StageConfig:
         """The named stage (default: `default_stage`); an unknown name is a ConfigError."""
@@ -111,6 +113,7 @@ def load_config(path: str | Path | None = None) -> Config:
         dataset=_dataset(root.child("dataset", {})),
         stages=_stages(root),
         default_stage=root.string("default_stage"),
+        can=parse_can(root, path),
         file=str(path),
         sha256=hashlib.sha256(raw).hexdigest(),
     )

@@ -37,6 +37,7 @@ from supervisor.localization.model import DepthROI, TargetModel
 from supervisor.runtime.builder import Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
 from supervisor.runtime.loop import RunRecord, overshoot
+from supervisor.can.link import CanLink  # CAN side channel (issue 12)
 
 IDLE_PERIOD = 0.02  # s: the idle loop's period (freshness checks, watchdog, queued requests)
 STATE_MAX_AGE = 0.1  # s: a robot state older than this at rest is not fresh
@@ -79,6 +80,7 @@ class Daemon:
         self._pending_run = False
         self._next_plan = None
         self._log("config", sha256=self.cfg.sha256, file=str(self.cfg.file), stage=self.sup.stage.name)
+        self.can = CanLink(self)  # CAN side channel (issue 12): opened now; unavailable -> arm is refused
 
     # -- small helpers ----------------------------------------------------------------------
     def _now(self) -> float:
@@ -93,6 +95,7 @@ class Daemon:
             self._changed.notify_all()
         if old is not state:
             self._log("state", state=state.value, previous=old.value, why=why)
+        self.can.state_changed()  # CAN side channel (issue 12): the heartbeat's state
         self.notifier.status(self.status_line())
 
     def status_line(self) -> str:
@@ -166,7 +169,8 @@ class Daemon:
                 "model": None if self.sup.model is None else {"features": self.sup.model.n_features,
                                                               "frame": self.sup.model.frame},
                 "config_sha256": self.cfg.sha256, "config": str(self.cfg.file), "runs": self.runs,
-                "last_run": self.last_summary, "alarms": [a for a in (self.events.alarm,) if a],
+                "last_run": self.last_summary, "alarms": [a for a in (self.events.alarm,) if a] + self.can.alarms,
+                "can": self.can.summary(),  # CAN side channel (issue 12)
                 "camera": vars(self.sup.frames.stats).copy(),
                 "ticks": None if pacer is None else pacer.stats.summary()}
 
@@ -225,6 +229,7 @@ class Daemon:
         if self.sup.model is None:
             raise Refused(f"{how} needs a target model (model build, or model load FILE)")
         problems = self.self_check(timeout=2.0)
+        problems += self.can.arm_problems()  # CAN side channel (issue 12): bus open, no fault, or no arming
         if problems:
             raise Refused(f"{how} refused: " + "; ".join(problems))
         self.fault = None
@@ -287,6 +292,8 @@ class Daemon:
     def _run_request(self, req: dict[str, Any]) -> dict[str, Any]:
         if self.state is not State.ARMED:
             raise Refused(f"run needs an armed supervisor (now {self.state.value})")
+        if self.can.arm_problems(reopen=False):  # CAN side channel (issue 12): a fault since arming
+            raise Refused("run refused: " + "; ".join(self.can.arm_problems(reopen=False)))
         az = req.get("azimuth_deg")
         sweep = req.get("sweep_deg")
         if not isinstance(az, (int, float)) or isinstance(az, bool) or not math.isfinite(az) or not 0 <= az <= 360:
@@ -332,6 +339,7 @@ class Daemon:
             time.sleep(0.01)
         if not self.fresh():
             self.notifier.watchdog(self._now())
+            self.can.heartbeat(self._now())  # CAN side channel (issue 12): the heartbeat at rest
         try:
             cmd, req, fut = self._requests.get(timeout=max(0.0, IDLE_PERIOD - (time.monotonic() - t0)))
         except queue.Empty:
@@ -354,8 +362,10 @@ class Daemon:
         def heartbeat(now: float) -> None:
             if not self._hung.is_set():
                 self.notifier.watchdog(now)
+                self.can.heartbeat(now)  # CAN side channel (issue 12): from the loop's fresh ticks
 
-        record = self.sup.run(plan, heartbeat=heartbeat)
+        # CAN side channel (issue 12): STOP on every brake, STATUS from the localization results
+        record = self.sup.run(plan, heartbeat=heartbeat, on_brake=self.can.on_brake, observer=self.can.observer())
         self.last_summary = self._summary(record)
         if record.halt_reason.startswith("fault:"):
             self.fault = record.halt_reason[len("fault:"):]
@@ -386,6 +396,7 @@ class Daemon:
         signal.signal(signal.SIGHUP, hangup)
 
     def close(self) -> None:
+        self.can.close()  # CAN side channel (issue 12)
         try:
             self.sup.close()
         finally:

@@ -1,0 +1,146 @@
+"""The daemon's CAN side channel: what `supervisor/daemon/service.py` calls, in one place.
+
+- At start the bus is opened; if it cannot be, the daemon still starts, `status()["can"]` says
+  why, and `arm`/`rearm` are refused until it opens (each arm tries again).
+- The heartbeat goes out from the loop's fresh ticks during a motion and from the idle loop
+  (after its freshness checks) at rest; STOP on every brake; STATUS from localization results.
+- An accepted EXTERNAL_STOP brakes a moving arm (halt reason `external_stop`) and latches
+  `halted` (only an explicit re-arm resumes); a motion started after it brakes at its first tick.
+- A bus fault during a motion brakes it (`fault:can_<kind>`); every fault is an alarm in
+  `status()["alarms"]` and a `can_fault` event, and refuses arming until the bus is reopened.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from drivers.bus.base import BusFault
+from supervisor.errors import SupervisorError
+from supervisor.localization.artifacts import viewing_angle
+
+if TYPE_CHECKING:
+    from supervisor.can.channel import SideChannel
+
+MAX_ALARMS = 20
+
+
+class _StatusObserver:
+    """The loop's observer: a STATUS frame (rate-limited) from each localization result."""
+
+    def __init__(self, link: CanLink) -> None:
+        self.link = link
+
+    def state(self, st) -> None:  # noqa: ARG002
+        pass
+
+    def frame(self, job) -> None:  # noqa: ARG002
+        pass
+
+    def result(self, jr) -> None:
+        ch, T0 = self.link.channel, self.link.d.sup.T_base_cam_model
+        if ch is None or T0 is None:
+            return
+        ch.status(jr.ready_t, viewing_angle(T0, jr.job.T_base_cam), None, jr.result.n_inliers)
+
+
+class CanLink:
+    """The side channel as the daemon uses it; every method is a no-op without a `can:` section."""
+
+    def __init__(self, daemon) -> None:
+        self.d = daemon
+        self.channel: SideChannel | None = None
+        self.problem: str | None = None
+        self.alarms: list[str] = []
+        self.external_latched = False
+        if self.configured:
+            self._open()
+
+    @property
+    def configured(self) -> bool:
+        return self.d.cfg.can is not None
+
+    def _open(self) -> None:
+        from supervisor.can.channel import SideChannel
+
+        ch = None
+        try:
+            ch = SideChannel(self.d.cfg.can, on_external_stop=self._external_stop, on_fault=self._fault)
+            ch.open()
+        except SupervisorError as exc:
+            self.problem = str(exc)
+            self.d._log("can_unavailable", problem=self.problem)  # noqa: SLF001
+            if ch is not None:
+                ch.close()
+            return
+        self.channel, self.problem = ch, None
+        self.d._log("can_open", bus=ch.bus.name, frames=dict(ch.settings.frames))  # noqa: SLF001
+        self.state_changed()
+
+    # -- what the daemon calls --------------------------------------------------------------
+    def state_changed(self) -> None:
+        if self.channel is None:
+            return
+        names = list(self.d.cfg.stages)
+        stage = self.d.sup.stage.name
+        self.channel.set_state(self.d.state.value, names.index(stage) if stage in names else 255,
+                               fault=bool(self.d.fault) or bool(self.channel.faults))
+
+    def arm_problems(self, reopen: bool = True) -> list[str]:
+        """Why arming must be refused now ([] when the side channel is fine or not configured). When
+        `reopen`, a channel that is not open or has faulted is closed and opened again first."""
+        if not self.configured:
+            return []
+        if reopen and (self.channel is None or not self.channel.healthy):
+            self.close()
+            self._open()
+        if self.channel is None:
+            return [f"CAN side channel unavailable: {self.problem}"]
+        problem = self.channel.problem()
+        if problem:
+            return [f"CAN side channel: {problem}"]
+        if reopen:
+            self.external_latched = False  # an explicit (re-)arm clears the external stop's latch
+        return []
+
+    def heartbeat(self, now: float) -> None:
+        if self.channel is not None:
+            self.channel.heartbeat(now)
+        if self.external_latched:  # a motion started after an external stop brakes at once
+            self.d.sup.request_stop("plc", halt_reason="external_stop")
+
+    def on_brake(self, now: float, reason: str) -> None:
+        if self.channel is not None:
+            self.channel.stop(now, reason)
+
+    def observer(self):
+        return None if self.channel is None else _StatusObserver(self)
+
+    def summary(self) -> dict[str, Any] | None:
+        if not self.configured:
+            return None
+        out = self.channel.summary() if self.channel is not None else {"open": False, "problem": self.problem}
+        out["external_stop_latched"] = self.external_latched
+        return out
+
+    def close(self) -> None:
+        ch, self.channel = self.channel, None
+        if ch is not None:
+            ch.close()
+
+    # -- from the receive thread (or a failed send in the tick) ------------------------------
+    def _external_stop(self, t: float) -> None:
+        from supervisor.daemon.service import State
+
+        self.external_latched = True
+        braking = self.d.sup.request_stop("plc", halt_reason="external_stop")
+        self.d._log("external_stop", received_t=t, braking=braking, state=self.d.state.value)  # noqa: SLF001
+        if not braking and self.d.state in (State.IDLE, State.ARMED):
+            self.d._set_state(State.HALTED, "external_stop")  # noqa: SLF001
+
+    def _fault(self, fault: BusFault) -> None:
+        if len(self.alarms) < MAX_ALARMS:
+            self.alarms.append(str(fault))
+        braking = self.d.sup.request_stop("can", halt_reason=f"fault:can_{fault.kind}")
+        self.d._log("can_fault", fault=fault.kind, detail=fault.detail, braking=braking)  # noqa: SLF001
+        if self.channel is not None:
+            self.channel.fault_flag = True
