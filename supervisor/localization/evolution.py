@@ -1,4 +1,4 @@
-"""Viewpoint-evolution pose refinement (Zhao et al., Appl. Sci. 2024, §2; METHOD.md §6).
+"""Viewpoint-evolution pose refinement (Zhao et al., Appl. Sci. 2024, §2; docs/method.md).
 
 A population of candidate camera poses evolves inside a feasible region that shrinks as
 the population improves:

@@ -127,13 +127,14 @@ SWITCH_INTERVAL = 2e-4  # s: how long a thread holding the GIL may keep a waitin
 
 def realtime_thread_setup(priority: int = 20) -> dict[str, object]:
     """Prepare the calling thread to run the control tick: a short GIL switch interval (the worker threads
-    hand the GIL back within 0.2 ms instead of 5 ms) and, where permitted (root or CAP_SYS_NICE), the
-    SCHED_FIFO real-time policy for this thread alone. Returns what was applied, for the event log."""
-    import os
+    hand the GIL back within 0.2 ms instead of 5 ms) and, where permitted (root, CAP_SYS_NICE or an
+    RLIMIT_RTPRIO), the SCHED_FIFO real-time policy for this thread alone. Returns what was applied, for
+    the event log; `realtime_thread_restore(that)` puts the thread back as it was."""
     import sys
 
+    out: dict[str, object] = {"switch_interval_ms": SWITCH_INTERVAL * 1e3, "sched_fifo": False,
+                              "_previous": (sys.getswitchinterval(), _current_policy())}
     sys.setswitchinterval(SWITCH_INTERVAL)
-    out: dict[str, object] = {"switch_interval_ms": SWITCH_INTERVAL * 1e3, "sched_fifo": False}
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         out["sched_fifo"] = True
@@ -141,6 +142,26 @@ def realtime_thread_setup(priority: int = 20) -> dict[str, object]:
     except (AttributeError, OSError) as exc:  # not Linux, or not permitted: the default policy
         out["sched_note"] = str(exc)
     return out
+
+
+def _current_policy():
+    try:
+        return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    except (AttributeError, OSError):
+        return None
+
+
+def realtime_thread_restore(setup: dict[str, object]) -> None:
+    """Undo `realtime_thread_setup` for the calling thread (the run is over)."""
+    import sys
+
+    interval, policy = setup["_previous"]  # type: ignore[misc]
+    sys.setswitchinterval(interval)
+    if policy is not None and setup.get("sched_fifo"):
+        try:
+            os.sched_setscheduler(0, policy[0], os.sched_param(policy[1]))
+        except OSError:
+            pass
 
 
 @dataclass(frozen=True)
@@ -315,8 +336,10 @@ class Supervisor:
                                   observer=observer)
             with self._lock:
                 self._loop = loop
+            rt = None
             if d.realtime:
-                self.events.emit(d.clock.now(), "realtime", **realtime_thread_setup())
+                rt = realtime_thread_setup()
+                self.events.emit(d.clock.now(), "realtime", **{k: v for k, v in rt.items() if k[0] != "_"})
                 # The cyclic garbage collector stops every thread for tens of ms on a large heap: collect
                 # now, at rest, and not while the arm moves (the loop's garbage is freed by refcounting).
                 gc.collect()
@@ -325,9 +348,10 @@ class Supervisor:
             try:
                 record = loop.run(max_time)
             finally:
-                if d.realtime:
+                if rt is not None:
                     gc.unfreeze()
                     gc.enable()
+                    realtime_thread_restore(rt)
             self.last_pacer = pacer
         finally:
             with self._lock:
