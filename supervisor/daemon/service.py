@@ -41,6 +41,7 @@ from supervisor.runtime.loop import RunRecord, overshoot
 IDLE_PERIOD = 0.02  # s: the idle loop's period (freshness checks, watchdog, queued requests)
 STATE_MAX_AGE = 0.1  # s: a robot state older than this at rest is not fresh
 REQUEST_TIMEOUT = 120.0  # s: how long a queued request may take (a model build moves the arm)
+SHUTDOWN_RECORDING_WAIT = 0.8  # s: [issue-10rec] a session's index at SIGTERM (the exit is due within 2 s)
 
 
 class State(enum.Enum):
@@ -78,6 +79,8 @@ class Daemon:
         self._hung = threading.Event()  # tests: make the idle loop hang (the watchdog must stop)
         self._pending_run = False
         self._next_plan = None
+        self._model_target: tuple | None = None  # [issue-10rec] (roi, board) of the last model build
+        self.recorder = None  # [issue-10rec] the last run's SessionRecorder
         self._log("config", sha256=self.cfg.sha256, file=str(self.cfg.file), stage=self.sup.stage.name)
 
     # -- small helpers ----------------------------------------------------------------------
@@ -166,7 +169,9 @@ class Daemon:
                 "model": None if self.sup.model is None else {"features": self.sup.model.n_features,
                                                               "frame": self.sup.model.frame},
                 "config_sha256": self.cfg.sha256, "config": str(self.cfg.file), "runs": self.runs,
-                "last_run": self.last_summary, "alarms": [a for a in (self.events.alarm,) if a],
+                "last_run": self.last_summary,
+                "alarms": [a for a in (self.events.alarm, getattr(self.recorder, "alarm", None)) if a],  # [issue-10rec]
+                "session": None if self.recorder is None else self.recorder.root.name,  # [issue-10rec]
                 "camera": vars(self.sup.frames.stats).copy(),
                 "ticks": None if pacer is None else pacer.stats.summary()}
 
@@ -267,6 +272,7 @@ class Daemon:
                 raise Refused("model load needs a file")
             model = TargetModel.load(file)
             self.sup.use_model(model, model.T_base_cam0)
+            self._model_target = None  # [issue-10rec] no model images: sessions are not recorded
         elif action == "build":
             view = getattr(self.drivers.camera, "start_view", None)
             if view is None:
@@ -279,6 +285,7 @@ class Daemon:
             else:
                 T0, roi, board = view()
             model = self.sup.capture_model(T0, roi, board)
+            self._model_target = (roi, board)  # [issue-10rec] for session recordings
         else:
             raise Refused("model needs action build or load")
         self._log("model", action=action, features=model.n_features, frame=model.frame)
@@ -355,12 +362,36 @@ class Daemon:
             if not self._hung.is_set():
                 self.notifier.watchdog(now)
 
-        record = self.sup.run(plan, heartbeat=heartbeat)
+        recorder = self._start_recording(plan)  # [issue-10rec]
+        record = self.sup.run(plan, heartbeat=heartbeat, observer=recorder)
         self.last_summary = self._summary(record)
+        if recorder is not None:  # [issue-10rec] the writer thread finishes the session (no plot at shutdown)
+            recorder.finish(record, self.last_summary, plot=not self._shutdown.is_set())
+            if self._shutdown.is_set():
+                recorder.wait(SHUTDOWN_RECORDING_WAIT)
         if record.halt_reason.startswith("fault:"):
             self.fault = record.halt_reason[len("fault:"):]
         self._log("run_ended", **self.last_summary)
         self._set_state(State.HALTED, record.halt_reason)
+
+    def _start_recording(self, plan):
+        """[issue-10rec] A SessionRecorder for this run under `<log_dir>/sessions/`, or None (off; no model images)."""
+        from supervisor.runtime.recorder import SESSIONS_DIR, SessionRecorder, session_info
+
+        rc = self.cfg.recording
+        if not rc.enabled:
+            return None
+        if self.sup.model_images is None or self._model_target is None:
+            self._log("recording_skipped", why="no model images: the model was loaded from a file (model build "
+                                               "records them)")
+            return None
+        if self.recorder is not None:
+            self.recorder.wait(30.0)  # the previous session's end (its index and plot) first
+        info = session_info(self.sup, plan, *self._model_target)
+        self.recorder = SessionRecorder.begin(self.log_dir / SESSIONS_DIR, info, quota_bytes=rc.quota_bytes,
+                                              events=self.events, clock=self.drivers.clock,
+                                              state_period=rc.state_period_s)
+        return self.recorder
 
     def _summary(self, record: RunRecord) -> dict[str, Any]:
         kin, T0 = self.drivers.kin, self.sup.T_base_cam_model
@@ -386,6 +417,8 @@ class Daemon:
         signal.signal(signal.SIGHUP, hangup)
 
     def close(self) -> None:
+        if self.recorder is not None:  # [issue-10rec] the last session is finished before the logs close
+            self.recorder.wait(SHUTDOWN_RECORDING_WAIT if self._shutdown.is_set() else 30.0)
         try:
             self.sup.close()
         finally:
