@@ -365,8 +365,8 @@ class Daemon:
         recorder = self._start_recording(plan)  # [issue-10rec]
         record = self.sup.run(plan, heartbeat=heartbeat, observer=recorder)
         self.last_summary = self._summary(record)
-        if recorder is not None:  # [issue-10rec] the writer thread finishes the session (no plot at shutdown)
-            recorder.finish(record, self.last_summary, plot=not self._shutdown.is_set())
+        if recorder is not None:  # [issue-10rec] the writer thread finishes the session (in a hurry at shutdown)
+            recorder.finish(record, self.last_summary, hurry=self._shutdown.is_set())
             if self._shutdown.is_set():
                 recorder.wait(SHUTDOWN_RECORDING_WAIT)
         if record.halt_reason.startswith("fault:"):
@@ -417,8 +417,8 @@ class Daemon:
         signal.signal(signal.SIGHUP, hangup)
 
     def close(self) -> None:
-        if self.recorder is not None:  # [issue-10rec] the last session is finished before the logs close
-            self.recorder.wait(SHUTDOWN_RECORDING_WAIT if self._shutdown.is_set() else 30.0)
+        if self.recorder is not None and not self._shutdown.is_set():  # [issue-10rec] (at shutdown: waited already)
+            self.recorder.wait(30.0)
         try:
             self.sup.close()
         finally:

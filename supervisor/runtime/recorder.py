@@ -265,6 +265,7 @@ class SessionRecorder:
         self._quota: _Quota | None = None
         self._csv: dict[str, _CsvFile] = {}
         self._done = threading.Event()
+        self._hurry = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(int(quota_bytes),), name="session-writer",
                                         daemon=True)
         self._thread.start()
@@ -303,10 +304,12 @@ class SessionRecorder:
             return False
 
     # -- the end of the run ---------------------------------------------------------------------
-    def finish(self, record=None, summary: dict[str, Any] | None = None, *, plot: bool = True) -> None:
-        """Queue the end of the session (index, metadata, events, and the timeline unless `plot` is false: a
-        shutdown has no second to spare); returns at once."""
-        self._queue.put((_STOP, record, summary, plot))  # unbounded wait: the writer always drains the queue
+    def finish(self, record=None, summary: dict[str, Any] | None = None, *, hurry: bool = False) -> None:
+        """Queue the end of the session (index, metadata, events, timeline); returns at once. `hurry` (a
+        shutdown, with no second to spare): frames still queued are dropped and no timeline is drawn."""
+        if hurry:
+            self._hurry.set()
+        self._queue.put((_STOP, record, summary, not hurry))  # unbounded wait: the writer always drains the queue
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait until the session is finished (or given up); True when it is."""
@@ -351,6 +354,9 @@ class SessionRecorder:
             try:
                 if kind == "frame":
                     self._frame_slots.release()
+                    if self._hurry.is_set():
+                        self.dropped["frames"] += 1
+                        continue
                 if not self._stopped.is_set():
                     getattr(self, f"_on_{kind}")(obj)
             except RecordingStopped as exc:
