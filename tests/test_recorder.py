@@ -199,3 +199,24 @@ def test_a_full_disk_stops_the_recording_with_an_alarm_and_never_disturbs_the_lo
     if out["path"] is not None:  # what was written before the failure is kept as a dataset
         ds = Dataset.open(out["path"])
         assert ds.meta["session"]["complete"] is False and "File too large" in ds.meta["session"]["stopped"]
+
+
+def test_a_continuous_session_is_a_dataset_for_offline_localization_but_not_for_the_loop_replay(rig, tmp_path):
+    from supervisor.cli import main
+    from supervisor.errors import DatasetError
+
+    saved = rig.sup.stage
+    rig.sup.set_stage(dataclasses.replace(saved, sampling="continuous"))
+    try:
+        record, rec, _ = rig.run(tmp_path / "sessions", sweep=math.radians(3.0))
+    finally:
+        rig.sup.set_stage(saved)
+    assert rec.alarm is None and record.halt_reason in ("end_of_path", "boundary")
+    ds = Dataset.open(rec.path)
+    assert ds.meta["motion"]["sampling"] == "continuous" and "images_per_position" not in ds.meta["motion"]
+    assert len(ds.frames) == len(record.samples) and len({f.s for f in ds.frames}) > 2  # frames taken moving
+    with pytest.raises(DatasetError, match="motion: replay needs"):
+        run_replay(rig.cfg, rec.path, "rec", tmp_path / "replay", progress=lambda *_: None)
+    assert main(["localize", str(rec.path), "-o", str(tmp_path / "loc")]) == 0
+    with (tmp_path / "loc" / "localization.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == len(ds.frames)
