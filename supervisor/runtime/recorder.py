@@ -1,6 +1,7 @@
 """Session recording: every gated run written as a dataset (format version 1) beside its logs.
 
-    rec = SessionRecorder.begin(sessions_dir, session_info, quota_bytes=..., events=events, clock=clock)
+    info = session_info(sup, plan, roi, board)  # after sup.capture_model(T0, roi, board)
+    rec = SessionRecorder.begin(sessions_dir, info, quota_bytes=..., events=events, clock=clock)
     record = sup.run(plan, observer=rec)    # the loop calls rec.state / rec.frame / rec.result per tick
     rec.finish(record)                       # index, metadata, events, timeline (on the writer thread)
 
@@ -59,6 +60,7 @@ QUEUE_ITEMS = 8192  # states, frames and results waiting for the writer
 MAX_QUEUED_FRAMES = 16  # frames (images) waiting for the writer; beyond this a frame is dropped
 RESERVE_BYTES = 2 << 20  # kept free under the quota for the index, metadata, events and plot at the end
 STATE_PERIOD = 0.01  # s: states.csv keeps one robot state per 10 ms
+FINISH_TIMEOUT = 10.0  # s: how long `finish` may wait for room on a full queue
 _NAME = re.compile(r"^\d{8}T\d{6}\.\d{6}Z")  # session names start with their UTC start time
 _STOP = object()
 
@@ -155,15 +157,17 @@ class _Quota:
                 continue
             self.others.append((key, p, _size(p)))
         self.others.sort()
+        self._others_bytes = sum(n for _, _, n in self.others)
 
     @property
     def total(self) -> int:
-        return self.used + sum(n for _, _, n in self.others)
+        return self.used + self._others_bytes
 
     def claim(self, n: int, reserve: int = RESERVE_BYTES) -> None:
         """Make room for `n` more bytes (evicting oldest first), or RecordingStopped."""
         while self.others and self.total + n + reserve > self.limit:
             _, path, size = self.others.pop(0)
+            self._others_bytes -= size
             shutil.rmtree(path, ignore_errors=True)
             self.on_evict(path, size)
         if self.total + n + reserve > self.limit:
@@ -309,7 +313,11 @@ class SessionRecorder:
         shutdown, with no second to spare): frames still queued are dropped and no timeline is drawn."""
         if hurry:
             self._hurry.set()
-        self._queue.put((_STOP, record, summary, not hurry))  # unbounded wait: the writer always drains the queue
+        try:  # the writer drains the queue (at most MAX_QUEUED_FRAMES images to encode before this item)
+            self._queue.put((_STOP, record, summary, not hurry), timeout=FINISH_TIMEOUT)
+        except queue.Full:
+            self._stop(f"session {self.root.name}: the writer did not take the end of the run within "
+                       f"{FINISH_TIMEOUT:.0f} s")
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait until the session is finished (or given up); True when it is."""
@@ -336,7 +344,7 @@ class SessionRecorder:
     def _run(self, quota_bytes: int) -> None:
         try:
             self._open(quota_bytes)
-        except (OSError, SupervisorError, ValueError) as exc:
+        except Exception as exc:  # noqa: BLE001 - OSError, RecordingStopped, OutputError, anything: stop
             self._stop(f"cannot start session {self.root.name}: {exc}")
         while True:
             item = self._queue.get()
