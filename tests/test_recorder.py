@@ -220,3 +220,35 @@ def test_a_continuous_session_is_a_dataset_for_offline_localization_but_not_for_
     assert main(["localize", str(rec.path), "-o", str(tmp_path / "loc")]) == 0
     with (tmp_path / "loc" / "localization.csv").open() as fh:
         assert len(list(csv.DictReader(fh))) == len(ds.frames)
+
+
+def _with_recording(tmp_path, block: str) -> Path:
+    """The default config with its `recording:` section replaced by `block` (YAML lines)."""
+    from supervisor.paths import DEFAULT_CONFIG
+
+    text = DEFAULT_CONFIG.read_text()
+    start, end = text.index("recording:"), text.index("# Task stages")
+    f = tmp_path / "recording.yaml"
+    f.write_text(text[:start] + block + text[end:])
+    return f
+
+
+@pytest.mark.parametrize("block, problem", [
+    ("recording: {enabled: true, quota_mb: -5}\n", "recording.quota_mb"),
+    ("recording: {enabled: true, quota_mb: .nan}\n", "recording.quota_mb"),
+    ("recording: {enabled: yes}\n", "recording.enabled"),
+    ("recording: {enabled: true, quotamb: 5}\n", "recording.quotamb"),
+    ("recording: {state_rate_hz: 0}\n", "recording.state_rate_hz"),
+])
+def test_bad_recording_settings_are_refused_naming_the_key(tmp_path, block, problem):
+    from supervisor.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=problem.replace(".", r"\.")):
+        load_config(_with_recording(tmp_path, block))
+
+
+def test_the_shipped_config_records_and_a_config_without_the_section_does_not(tmp_path):
+    cfg = load_config(None)
+    assert cfg.recording.enabled and cfg.recording.quota_bytes == 2048 * 10**6
+    assert cfg.recording.state_period_s == pytest.approx(0.01)
+    assert load_config(_with_recording(tmp_path, "")).recording.enabled is False
