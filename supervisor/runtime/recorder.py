@@ -12,9 +12,11 @@ A session directory (`<log_dir>/sessions/<UTC time>-<stage>`) holds the dataset 
 `timeline.png` (the dry-run's plot). A stop-and-go session is an arc recording that
 `supervisor dry-run --replay` runs through the loop again.
 
-The observer methods run in the control tick: they only put references on a bounded queue
-(a frame while `MAX_QUEUED_FRAMES` wait, or any item on a full queue, is dropped and
-counted). A writer thread does the disk work. A disk quota covers all sessions: before
+The observer methods run in the control tick: they only append references to bounded
+deques (a frame while `MAX_QUEUED_FRAMES` wait, or a state or result while `QUEUE_ITEMS` do,
+is dropped and counted). They wake nobody: a writer thread polls the deques every
+`POLL_PERIOD` and does the disk work (a queue's wake-up at every 1 kHz state cost the tick
+more than the writing; see benchmarks/bench_recorder.py). A disk quota covers all sessions: before
 each write the oldest other sessions are deleted until the new bytes fit (never the
 running one, never a directory this module did not write). When a session cannot be
 written (quota smaller than what it needs, disk full, file too large, I/O error) it stops
@@ -29,11 +31,11 @@ import io
 import json
 import math
 import os
-import queue
 import re
 import shutil
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -56,13 +58,12 @@ from supervisor.runtime.history import StateHistory
 SESSION_COMMAND = "daemon session"
 SESSIONS_DIR = "sessions"
 SESSION_FILES = (*DATASET_FILES, "localization.csv", "states.csv", "events.jsonl", "timeline.png")
-QUEUE_ITEMS = 8192  # states, frames and results waiting for the writer
+QUEUE_ITEMS = 8192  # states (and results) waiting for the writer; beyond this one is dropped
 MAX_QUEUED_FRAMES = 16  # frames (images) waiting for the writer; beyond this a frame is dropped
+POLL_PERIOD = 0.02  # s: the writer takes what the tick queued this often (the tick never wakes it)
 RESERVE_BYTES = 2 << 20  # kept free under the quota for the index, metadata, events and plot at the end
 STATE_PERIOD = 0.01  # s: states.csv keeps one robot state per 10 ms
-FINISH_TIMEOUT = 10.0  # s: how long `finish` may wait for room on a full queue
 _NAME = re.compile(r"^\d{8}T\d{6}\.\d{6}Z")  # session names start with their UTC start time
-_STOP = object()
 
 LOCALIZATION_COLUMNS = (["frame_t", "seq", "step", "file", "s", "ready_t", "latency_ms", "status", "n_inliers",
                          "n_matches", "n_keypoints", "reprojection_error_px"]
@@ -245,7 +246,7 @@ class SessionRecorder:
 
     def __init__(self, root: Path, info: SessionInfo, *, quota_bytes: int, events: EventLog, clock: Clock,
                  state_period: float = STATE_PERIOD, queue_items: int = QUEUE_ITEMS,
-                 max_queued_frames: int = MAX_QUEUED_FRAMES) -> None:
+                 max_queued_frames: int = MAX_QUEUED_FRAMES, poll_period: float = POLL_PERIOD) -> None:
         self.root = Path(root)
         self.info = info
         self.events = events
@@ -256,8 +257,12 @@ class SessionRecorder:
         self.evicted: list[str] = []
         self.path: Path | None = None  # the finished session directory
         self._stopped = threading.Event()  # recording stopped: the observer methods return at once
-        self._queue: queue.Queue[object] = queue.Queue(maxsize=queue_items)
-        self._frame_slots = threading.Semaphore(max_queued_frames)
+        # The tick appends to these (deque appends are atomic and wake nobody); the writer polls them.
+        self._queues: dict[str, deque] = {"state": deque(), "frame": deque(), "result": deque()}
+        self._limits = {"state": int(queue_items), "frame": int(max_queued_frames), "result": int(queue_items)}
+        self._poll = float(poll_period)
+        self._end: tuple | None = None  # (record, summary, plot) once the run has ended
+        self._wake = threading.Event()
         self._events_from = len(events.events)
         self._files: dict[int, str] = {}  # frame seq -> recorded file
         self._image_index: dict[int, int] = {}  # position -> images recorded there
@@ -283,29 +288,22 @@ class SessionRecorder:
 
     # -- the observer (in the control tick: enqueue only) ----------------------------------------
     def state(self, st) -> None:
-        if not self._stopped.is_set():
-            self._put(("state", st), "states")
+        self._put("state", st)
 
     def frame(self, job) -> None:
-        if self._stopped.is_set():
-            return
-        if not self._frame_slots.acquire(blocking=False):
-            self.dropped["frames"] += 1
-            return
-        if not self._put(("frame", job), "frames"):
-            self._frame_slots.release()
+        self._put("frame", job)
 
     def result(self, job_result) -> None:
-        if not self._stopped.is_set():
-            self._put(("result", job_result), "results")
+        self._put("result", job_result)
 
-    def _put(self, item, kind: str) -> bool:
-        try:
-            self._queue.put_nowait(item)
-            return True
-        except queue.Full:
-            self.dropped[kind] += 1
-            return False
+    def _put(self, kind: str, item) -> None:
+        if self._stopped.is_set():
+            return
+        q = self._queues[kind]
+        if len(q) >= self._limits[kind]:
+            self.dropped[f"{kind}s"] += 1
+        else:
+            q.append(item)
 
     # -- the end of the run ---------------------------------------------------------------------
     def finish(self, record=None, summary: dict[str, Any] | None = None, *, hurry: bool = False) -> None:
@@ -313,11 +311,8 @@ class SessionRecorder:
         shutdown, with no second to spare): frames still queued are dropped and no timeline is drawn."""
         if hurry:
             self._hurry.set()
-        try:  # the writer drains the queue (at most MAX_QUEUED_FRAMES images to encode before this item)
-            self._queue.put((_STOP, record, summary, not hurry), timeout=FINISH_TIMEOUT)
-        except queue.Full:
-            self._stop(f"session {self.root.name}: the writer did not take the end of the run within "
-                       f"{FINISH_TIMEOUT:.0f} s")
+        self._end = (record, summary, not hurry)
+        self._wake.set()
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait until the session is finished (or given up); True when it is."""
@@ -347,10 +342,11 @@ class SessionRecorder:
         except Exception as exc:  # noqa: BLE001 - OSError, RecordingStopped, OutputError, anything: stop
             self._stop(f"cannot start session {self.root.name}: {exc}")
         while True:
-            item = self._queue.get()
-            if isinstance(item, tuple) and item[0] is _STOP:
+            end = self._end  # read before draining: everything queued before the end is written
+            self._drain()
+            if end is not None:
                 try:
-                    self._finish(*item[1:])
+                    self._finish(*end)
                 except Exception as exc:  # noqa: BLE001 - the recorder never takes anything down
                     self._stop(f"cannot finish session {self.root.name}: {type(exc).__name__}: {exc}")
                     self._abort()
@@ -358,21 +354,27 @@ class SessionRecorder:
                     self._close_csv()
                     self._done.set()
                 return
-            kind, obj = item  # type: ignore[misc]
-            try:
-                if kind == "frame":
-                    self._frame_slots.release()
-                    if self._hurry.is_set():
-                        self.dropped["frames"] += 1
-                        continue
-                if not self._stopped.is_set():
+            self._wake.wait(self._poll)
+
+    def _drain(self) -> None:
+        """Write what the tick queued: states first (frames need the robot's joints at their time), then
+        frames, then results (which name their frame's file)."""
+        for kind in ("state", "frame", "result"):
+            q = self._queues[kind]
+            while q:
+                obj = q.popleft()
+                if self._stopped.is_set() or (kind == "frame" and self._hurry.is_set()):
+                    if kind == "frame":
+                        self.dropped["frames"] += 1  # not written: recording stopped, or a shutdown
+                    continue
+                try:
                     getattr(self, f"_on_{kind}")(obj)
-            except RecordingStopped as exc:
-                self._stop(str(exc))
-            except (OSError, ValueError) as exc:  # ENOSPC, EFBIG, EIO; ValueError: a closed file
-                self._stop(f"cannot write session {self.root.name}: {exc}")
-            except Exception as exc:  # noqa: BLE001
-                self._stop(f"session {self.root.name}: {type(exc).__name__}: {exc}")
+                except RecordingStopped as exc:
+                    self._stop(str(exc))
+                except (OSError, ValueError) as exc:  # ENOSPC, EFBIG, EIO; ValueError: a closed file
+                    self._stop(f"cannot write session {self.root.name}: {exc}")
+                except Exception as exc:  # noqa: BLE001
+                    self._stop(f"session {self.root.name}: {type(exc).__name__}: {exc}")
 
     def _open(self, quota_bytes: int) -> None:
         info = self.info
