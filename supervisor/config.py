@@ -79,6 +79,15 @@ class DatasetProtocol:
 
 
 @dataclass(frozen=True)
+class RecordingConfig:
+    """`recording:` sessions recorded by the daemon under `<log_dir>/sessions/` (supervisor.runtime.recorder)."""
+
+    enabled: bool = False  # off when the section is absent; the shipped config turns it on
+    quota_bytes: int = 2048 * 10**6  # all sessions together; the oldest are deleted first
+    state_period_s: float = 0.01  # robot states kept in states.csv
+
+
+@dataclass(frozen=True)
 class Config:
     robot: RobotConfig
     camera: CameraConfig
@@ -90,6 +99,7 @@ class Config:
     stages: Mapping[str, StageConfig] = field(default_factory=dict)
     default_stage: str = ""
     can: CanSettings | None = None  # the CAN side channel (`can:`; absent or null: none)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
 
     def stage(self, name: str | None = None) -> StageConfig:
         """The named stage (default: `default_stage`); an unknown name is a ConfigError."""
@@ -114,6 +124,7 @@ def load_config(path: str | Path | None = None) -> Config:
         stages=_stages(root),
         default_stage=root.string("default_stage"),
         can=parse_can(root, path),
+        recording=_recording(root.child("recording", {})),
         file=str(path),
         sha256=hashlib.sha256(raw).hexdigest(),
     )
@@ -181,6 +192,16 @@ def _camera(n: Node) -> CameraConfig:
         timeout_s=n.number("timeout_ms", 200.0, min=1.0, max=60000.0) / 1000.0,
         aravis=AravisSettings.from_node(n.child("aravis", {})),
         v4l2=V4L2Settings.from_node(n.child("v4l2", {})),
+    )
+    n.done()
+    return out
+
+
+def _recording(n: Node) -> RecordingConfig:
+    out = RecordingConfig(
+        enabled=n.boolean("enabled", False),
+        quota_bytes=int(n.number("quota_mb", 2048.0, min=0.0, max=1e9, min_exclusive=True) * 10**6),
+        state_period_s=1.0 / n.number("state_rate_hz", 100.0, min=1.0, max=10000.0),
     )
     n.done()
     return out

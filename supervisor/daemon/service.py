@@ -42,6 +42,7 @@ from supervisor.can.link import CanLink  # CAN side channel (issue 12)
 IDLE_PERIOD = 0.02  # s: the idle loop's period (freshness checks, watchdog, queued requests)
 STATE_MAX_AGE = 0.1  # s: a robot state older than this at rest is not fresh
 REQUEST_TIMEOUT = 120.0  # s: how long a queued request may take (a model build moves the arm)
+SHUTDOWN_RECORDING_WAIT = 0.8  # s: [issue-10rec] a session's index at SIGTERM (the exit is due within 2 s)
 
 
 class State(enum.Enum):
@@ -49,6 +50,33 @@ class State(enum.Enum):
     ARMED = "armed"
     MOVING = "moving"
     HALTED = "halted"
+
+
+class Observers:
+    """Several loop observers as one (the CAN STATUS feed, the session recorder): each sees every call,
+    whatever another one raised; the first failure is raised afterwards, for the loop to report."""
+
+    def __init__(self, *observers) -> None:
+        self.observers = [o for o in observers if o is not None]
+
+    def _all(self, name: str, arg) -> None:
+        first = None
+        for o in self.observers:
+            try:
+                getattr(o, name)(arg)
+            except Exception as exc:  # noqa: BLE001 - re-raised below, after the others had their turn
+                first = first or exc
+        if first is not None:
+            raise first
+
+    def state(self, st) -> None:
+        self._all("state", st)
+
+    def frame(self, job) -> None:
+        self._all("frame", job)
+
+    def result(self, jr) -> None:
+        self._all("result", jr)
 
 
 class Refused(SupervisorError):
@@ -79,6 +107,8 @@ class Daemon:
         self._hung = threading.Event()  # tests: make the idle loop hang (the watchdog must stop)
         self._pending_run = False
         self._next_plan = None
+        self._model_target: tuple | None = None  # [issue-10rec] (roi, board) of the last model build
+        self.recorder = None  # [issue-10rec] the last run's SessionRecorder
         self._log("config", sha256=self.cfg.sha256, file=str(self.cfg.file), stage=self.sup.stage.name)
         self.can = CanLink(self)  # CAN side channel (issue 12): opened now; unavailable -> arm is refused
 
@@ -169,8 +199,11 @@ class Daemon:
                 "model": None if self.sup.model is None else {"features": self.sup.model.n_features,
                                                               "frame": self.sup.model.frame},
                 "config_sha256": self.cfg.sha256, "config": str(self.cfg.file), "runs": self.runs,
-                "last_run": self.last_summary, "alarms": [a for a in (self.events.alarm,) if a] + self.can.alarms,
+                "last_run": self.last_summary,
+                "alarms": [a for a in (self.events.alarm, getattr(self.recorder, "alarm", None)) if a]
+                + self.can.alarms,
                 "can": self.can.summary(),  # CAN side channel (issue 12)
+                "session": None if self.recorder is None else self.recorder.root.name,  # [issue-10rec]
                 "camera": vars(self.sup.frames.stats).copy(),
                 "ticks": None if pacer is None else pacer.stats.summary()}
 
@@ -272,6 +305,7 @@ class Daemon:
                 raise Refused("model load needs a file")
             model = TargetModel.load(file)
             self.sup.use_model(model, model.T_base_cam0)
+            self._model_target = None  # [issue-10rec] no model images: sessions are not recorded
         elif action == "build":
             view = getattr(self.drivers.camera, "start_view", None)
             if view is None:
@@ -284,6 +318,7 @@ class Daemon:
             else:
                 T0, roi, board = view()
             model = self.sup.capture_model(T0, roi, board)
+            self._model_target = (roi, board)  # [issue-10rec] for session recordings
         else:
             raise Refused("model needs action build or load")
         self._log("model", action=action, features=model.n_features, frame=model.frame)
@@ -364,13 +399,38 @@ class Daemon:
                 self.notifier.watchdog(now)
                 self.can.heartbeat(now)  # CAN side channel (issue 12): from the loop's fresh ticks
 
+        recorder = self._start_recording(plan)  # [issue-10rec]
         # CAN side channel (issue 12): STOP on every brake, STATUS from the localization results
-        record = self.sup.run(plan, heartbeat=heartbeat, on_brake=self.can.on_brake, observer=self.can.observer())
+        record = self.sup.run(plan, heartbeat=heartbeat, on_brake=self.can.on_brake,
+                              observer=Observers(self.can.observer(), recorder))
         self.last_summary = self._summary(record)
+        if recorder is not None:  # [issue-10rec] the writer thread finishes the session (in a hurry at shutdown)
+            recorder.finish(record, self.last_summary, hurry=self._shutdown.is_set())
+            if self._shutdown.is_set():
+                recorder.wait(SHUTDOWN_RECORDING_WAIT)
         if record.halt_reason.startswith("fault:"):
             self.fault = record.halt_reason[len("fault:"):]
         self._log("run_ended", **self.last_summary)
         self._set_state(State.HALTED, record.halt_reason)
+
+    def _start_recording(self, plan):
+        """[issue-10rec] A SessionRecorder for this run under `<log_dir>/sessions/`, or None (off; no model images)."""
+        from supervisor.runtime.recorder import SESSIONS_DIR, SessionRecorder, session_info
+
+        rc = self.cfg.recording
+        if not rc.enabled:
+            return None
+        if self.sup.model_images is None or self._model_target is None:
+            self._log("recording_skipped", why="no model images: the model was loaded from a file (model build "
+                                               "records them)")
+            return None
+        if self.recorder is not None:
+            self.recorder.wait(30.0)  # the previous session's end (its index and plot) first
+        info = session_info(self.sup, plan, *self._model_target)
+        self.recorder = SessionRecorder.begin(self.log_dir / SESSIONS_DIR, info, quota_bytes=rc.quota_bytes,
+                                              events=self.events, clock=self.drivers.clock,
+                                              state_period=rc.state_period_s)
+        return self.recorder
 
     def _summary(self, record: RunRecord) -> dict[str, Any]:
         kin, T0 = self.drivers.kin, self.sup.T_base_cam_model
@@ -397,6 +457,8 @@ class Daemon:
 
     def close(self) -> None:
         self.can.close()  # CAN side channel (issue 12)
+        if self.recorder is not None and not self._shutdown.is_set():  # [issue-10rec] (at shutdown: waited already)
+            self.recorder.wait(30.0)
         try:
             self.sup.close()
         finally:

@@ -201,6 +201,7 @@ class Supervisor:
             else InlineFrames(d.camera)
         self.model: TargetModel | None = None
         self.T_base_cam_model: np.ndarray | None = None
+        self.model_images: list | None = None  # [issue-10rec] set by capture_model (session recordings)
         self.final_model: TargetModel | None = None  # the model the last run's worker ended with
         self.last_pacer = None
         self._loop: SupervisorLoop | None = None
@@ -259,23 +260,28 @@ class Supervisor:
         """The model protocol: two images 2 cm apart along camera x (poses from the robot), triangulated;
         the camera ends back at the first view, which becomes the arc's start."""
         shots = []
+        kept = []  # [issue-10rec] the model images and robot states, kept for session recordings
         baseline = make_T(np.eye(3), [self.cfg.dataset.model_baseline, 0.0, 0.0])
         for T in (T_base_cam0, T_base_cam0 @ baseline):
             self.move_camera_to(T)
             frame = self.frame_at_rest()
             shots.append((frame.image, self.camera_pose()))
+            kept.append((frame, self.drivers.robot.state()))
         (i0, T0), (i1, T1) = shots
         cam = self.drivers.camera
         intrinsics = getattr(cam, "output_intrinsics", cam.intrinsics)  # zero distortion if the driver undistorts
         model = build_model(i0, i1, T0, T1, intrinsics, self.cfg.localization, roi, board=board)
         self.move_camera_to(T0)
         self.use_model(model, T0)
+        self.model_images = kept  # [issue-10rec] after use_model, which forgets them
         return model
 
     def use_model(self, model: TargetModel, T_base_cam_model: np.ndarray) -> None:
         """Set the target model and the camera pose it was built at (the viewing angle's origin)."""
         self.model = model
         self.T_base_cam_model = np.array(T_base_cam_model, float)
+        # [issue-10rec] (frame, robot state) of the two model images when capture_model built the model
+        self.model_images: list | None = None
         if self.worker_kind == "process" and self._process_worker is None:
             # start the localization processes now: a new interpreter takes seconds to import OpenCV
             self._process_worker = ProcessWorker(model, self.cfg.localization, self.drivers.clock,
