@@ -25,6 +25,9 @@ RENDER_PRIORITY = 10  # SCHED_FIFO, below the control tick's 20
 def _serve(scene: Scene, intrinsics: Intrinsics, shm_name: str, conn) -> None:
     import os
 
+    from supervisor.runtime.worker import die_with_parent
+
+    die_with_parent()
     try:  # a camera delivers its frames whatever else the machine does: where permitted, real-time policy
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RENDER_PRIORITY))
     except (AttributeError, OSError):

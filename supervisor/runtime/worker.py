@@ -20,6 +20,8 @@ pool, frames submitted after a refinement request wait for the new model.
 
 from __future__ import annotations
 
+import os
+import pickle
 import queue
 import threading
 import time
@@ -280,6 +282,20 @@ class ThreadWorker:
             th.join(max(0.0, deadline - time.monotonic()))
 
 
+def die_with_parent() -> None:
+    """Linux: this (child) process gets SIGKILL when its parent dies, even by SIGKILL (no orphans)."""
+    import ctypes
+    import signal as _signal
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(_signal.SIGKILL))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() == 1:  # the parent died before the call took effect
+        os._exit(1)
+
+
 def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str, slot_bytes: int,
                   tasks, results, index: int) -> None:
     """A localization process: frames arrive as shared-memory slots, results go back pickled."""
@@ -287,6 +303,7 @@ def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str
     from multiprocessing import shared_memory
 
     cv2.setNumThreads(1)  # one core per process; the processes are the parallelism
+    die_with_parent()
     shm = shared_memory.SharedMemory(name=shm_name)
     try:
         localizer = Localizer(model, settings)
@@ -297,6 +314,14 @@ def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str
                 return
             if msg[0] == "model":
                 localizer.set_model(msg[1])
+                continue
+            if msg[0] == "refit":  # the model refinement's numpy work, off the parent's GIL
+                _, step, blob = msg
+                try:
+                    model, stats = pickle.loads(blob).refined()
+                    results.put(("refit", step, -1, (model, stats)))
+                except BaseException as exc:  # noqa: BLE001
+                    results.put(("error", step, -1, f"model refinement failed: {exc!r}"))
                 continue
             _, key, slot, shape, hint = msg
             image = np.ndarray(shape, np.uint8, buffer=shm.buf, offset=slot * slot_bytes).copy()
@@ -431,7 +456,7 @@ class ProcessWorker:
             return
         with self._lock:
             self._refitting = True
-        threading.Thread(target=self._refit, args=(step,), name="model-refit", daemon=True).start()
+        threading.Thread(target=self._send_refit, args=(step,), name="model-refit", daemon=True).start()
 
     def take_notes(self) -> list[dict[str, Any]]:
         with self._lock:
@@ -465,6 +490,12 @@ class ProcessWorker:
             if msg is None:
                 return
             kind, key, slot, payload = msg
+            if kind == "refit":
+                self._refitted(key, *payload)
+                continue
+            if slot < 0:  # a refit that failed
+                self._error = payload
+                continue
             with self._lock:
                 job, i = self._jobs.pop(key, (None, 0))
                 self._load[i] -= 1
@@ -479,13 +510,25 @@ class ProcessWorker:
             self.completed += 1
             self._done.append(JobResult(job, payload, self.clock.now()))
 
-    def _refit(self, step: int) -> None:
+    def _send_refit(self, step: int) -> None:
+        """Ship the refiner (its observations so far) to a localization process: the re-triangulation's
+        numpy work holds the GIL for tens of ms at a time, which the control tick cannot afford."""
         try:
             with self._refine_lock:
-                model, stats = self._refinement.refit()
+                refinement = self._refinement
+                refiner = refinement.refiner
+                if refiner is None:
+                    raise RuntimeError("no refiner")
+                if not refinement.continuous:
+                    refinement.refiner = None  # one refit only; later observations are not needed
+                with self._lock:
+                    i = int(np.argmin(self._load))
+                blob = pickle.dumps(refiner, protocol=pickle.HIGHEST_PROTOCOL)  # a snapshot, under the lock
+            self._queues[i].put(("refit", step, blob))
         except BaseException as exc:  # noqa: BLE001
             self._error = f"model refinement failed: {exc!r}"
-            return
+
+    def _refitted(self, step: int, model: TargetModel, stats: dict[str, Any]) -> None:
         for q in self._queues:
             q.put(("model", model))
         with self._lock:
@@ -520,5 +563,10 @@ class ProcessWorker:
             if p.is_alive():
                 p.terminate()
                 p.join(0.5)
+        # A feeder thread blocked writing to a process that is gone would hang the interpreter's exit
+        # (it joins every queue's feeder): drop what was not delivered.
+        for q in (*self._queues, self._results):
+            q.cancel_join_thread()
+            q.close()
         self._shm.close()
         self._shm.unlink()
