@@ -36,6 +36,7 @@ from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.model import DepthROI, TargetModel
 from supervisor.runtime.builder import Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
+from supervisor.motion.plan import START_TOLERANCE
 from supervisor.runtime.loop import RunRecord, overshoot
 from supervisor.can.link import CanLink  # CAN side channel (issue 12)
 
@@ -339,6 +340,13 @@ class Daemon:
         pivot = getattr(self.drivers.camera, "pivot_base", None)
         if pivot is None:
             pivot = (self.sup.model.T_base_target @ np.append(self.sup.model.centroid, 1.0))[:3]
+        # Every arc starts at the model view; after a run the arm rests where it halted: move back first (a
+        # planned, checked setup move away from the boundary, part of this explicit request).
+        kin, robot = self.drivers.kin, self.drivers.robot
+        q_start = kin.ik_or_raise(self.sup.T_base_cam_model, robot.state().q, "camera")
+        if np.max(np.abs(q_start - robot.state().q)) > START_TOLERANCE:
+            self._log("return_to_start")
+            self.sup.move_camera_to(self.sup.T_base_cam_model)
         plan = self.sup.plan_arc(pivot, math.radians(az), None if sweep is None else math.radians(sweep))
         self._next_plan = plan
         self._pending_run = True

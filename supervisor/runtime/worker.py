@@ -21,7 +21,6 @@ pool, frames submitted after a refinement request wait for the new model.
 from __future__ import annotations
 
 import os
-import pickle
 import queue
 import threading
 import time
@@ -307,6 +306,7 @@ def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str
     shm = shared_memory.SharedMemory(name=shm_name)
     try:
         localizer = Localizer(model, settings)
+        refiner = None  # process 0 keeps the run's ModelRefiner (observations arrive as messages)
         results.put(("ready", index, None, None))
         while True:
             msg = tasks.get()
@@ -315,13 +315,21 @@ def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str
             if msg[0] == "model":
                 localizer.set_model(msg[1])
                 continue
+            if msg[0] == "refiner":  # a new run: the model its observations are gated against
+                refiner = ModelRefiner(msg[1])
+                continue
+            if msg[0] == "observe":
+                if refiner is not None:
+                    refiner.add(*msg[1:])
+                continue
             if msg[0] == "refit":  # the model refinement's numpy work, off the parent's GIL
-                _, step, blob = msg
                 try:
-                    model, stats = pickle.loads(blob).refined()
-                    results.put(("refit", step, -1, (model, stats)))
+                    if refiner is None:
+                        raise RuntimeError("no refiner in this process")
+                    model, stats = refiner.refined()
+                    results.put(("refit", msg[1], -1, (model, stats)))
                 except BaseException as exc:  # noqa: BLE001
-                    results.put(("error", step, -1, f"model refinement failed: {exc!r}"))
+                    results.put(("error", msg[1], -1, f"model refinement failed: {exc!r}"))
                 continue
             _, key, slot, shape, hint = msg
             image = np.ndarray(shape, np.uint8, buffer=shm.buf, offset=slot * slot_bytes).copy()
@@ -383,9 +391,11 @@ class ProcessWorker:
         self._closed = False
         self._model = model
         self._refinement = _Refinement(model, settings)
-        self._refine_lock = threading.Lock()  # observations vs. a refit in progress
+        self._refinement.refiner = None  # the observations live in process 0, see _observe
+        self._observing = False
         self._collector = threading.Thread(target=self._collect, name="localize-results", daemon=True)
         self._collector.start()
+        self._begin_refinement(model)
 
     def _await_ready(self, timeout: float) -> None:
         """Block until every process has imported its libraries and built its localizer (a few seconds)."""
@@ -409,13 +419,21 @@ class ProcessWorker:
 
     def start_run(self, model: TargetModel) -> None:
         """A new motion: this model, a new refinement schedule, nothing pending."""
-        with self._lock, self._refine_lock:
+        with self._lock:
             self._model = model
             self._refinement = _Refinement(model, self.settings)
+            self._refinement.refiner = None
             self._held = []
             self._refitting = False
         for q in self._queues:
             q.put(("model", model))
+        self._begin_refinement(model)
+
+    def _begin_refinement(self, model: TargetModel) -> None:
+        """Process 0 keeps this run's refiner; the parent only forwards observations to it."""
+        self._observing = self._refinement.steps > 0
+        if self._observing:
+            self._queues[0].put(("refiner", model))
 
     # -- the tick's side ---------------------------------------------------------------
     def submit(self, job: FrameJob, hint: np.ndarray | None) -> bool:
@@ -452,11 +470,14 @@ class ProcessWorker:
         return out
 
     def refine(self, now: float, step: int) -> None:
-        if not self._refinement.claim(step):
+        r = self._refinement
+        if not self._observing or step < r.steps - 1:
             return
+        if not r.continuous:
+            self._observing = False  # one refit: later observations are not needed
         with self._lock:
             self._refitting = True
-        threading.Thread(target=self._send_refit, args=(step,), name="model-refit", daemon=True).start()
+        self._queues[0].put(("refit", step))  # after every observation sent so far (one FIFO queue)
 
     def take_notes(self) -> list[dict[str, Any]]:
         with self._lock:
@@ -505,28 +526,16 @@ class ProcessWorker:
                 continue
             if job is None:
                 continue
-            with self._refine_lock:
-                self._refinement.observe(job, payload)
+            self._observe(job, payload)
             self.completed += 1
             self._done.append(JobResult(job, payload, self.clock.now()))
 
-    def _send_refit(self, step: int) -> None:
-        """Ship the refiner (its observations so far) to a localization process: the re-triangulation's
-        numpy work holds the GIL for tens of ms at a time, which the control tick cannot afford."""
-        try:
-            with self._refine_lock:
-                refinement = self._refinement
-                refiner = refinement.refiner
-                if refiner is None:
-                    raise RuntimeError("no refiner")
-                if not refinement.continuous:
-                    refinement.refiner = None  # one refit only; later observations are not needed
-                with self._lock:
-                    i = int(np.argmin(self._load))
-                blob = pickle.dumps(refiner, protocol=pickle.HIGHEST_PROTOCOL)  # a snapshot, under the lock
-            self._queues[i].put(("refit", step, blob))
-        except BaseException as exc:  # noqa: BLE001
-            self._error = f"model refinement failed: {exc!r}"
+    def _observe(self, job: FrameJob, res: LocalizationResult) -> None:
+        """Forward a result's matches to the refiner in process 0 (small arrays; the queue's feeder thread
+        pickles them): the parent never holds the observations, so no big object is pickled here."""
+        r = self._refinement
+        if self._observing and res.matches is not None and (r.continuous or job.step < r.steps):
+            self._queues[0].put(("observe", job.T_base_cam, *res.matches))
 
     def _refitted(self, step: int, model: TargetModel, stats: dict[str, Any]) -> None:
         for q in self._queues:
