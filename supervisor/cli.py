@@ -46,7 +46,7 @@ def cmd_benchmark_generate(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     t0 = time.monotonic()
-    out = generate_suite(cfg, args.out, quick=args.quick, jobs=args.jobs, seed=args.seed)
+    out = generate_suite(cfg, args.out, quick=args.quick, jobs=args.jobs, seed=args.seed, suite=args.suite)
     print(f"benchmark suite ready in {out} ({time.monotonic() - t0:.0f} s)")
     return 0
 
@@ -173,6 +173,8 @@ def build_parser() -> argparse.ArgumentParser:
     bg = bm.add_parser("generate", help="record the benchmark suite (>= 21 arcs + 4 lines)")
     bg.add_argument("out")
     bg.add_argument("--quick", action="store_true", help="3 images per position instead of 10")
+    bg.add_argument("--suite", choices=("v2", "v3"), default="v3",
+                    help="v3 (default): every v2 dataset plus the decay-shape scenes; v2: the previous suite exactly")
     bg.add_argument("--jobs", type=int, default=None, help="parallel processes (default: up to 2)")
     bg.add_argument("--seed", type=int, default=0)
     bg.set_defaults(func=cmd_benchmark_generate)
