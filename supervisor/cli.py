@@ -121,6 +121,18 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_tune(args: argparse.Namespace) -> int:
+    from supervisor.evaluation.tune import format_report, tune
+
+    cfg = _config(args)
+    variants = tuple(v for v in args.variants.split(",") if v) if args.variants else None
+    out = args.out or f"out/tune-{args.stage}-{args.tolerance}"
+    report = tune(cfg, args.bench_dir, args.stage, args.tolerance, out, cache=args.cache, variants=variants,
+                  error_aware=args.error_aware, jobs=args.jobs or 2)
+    print(format_report(report))
+    return 0
+
+
 def cmd_dry_run(args: argparse.Namespace) -> int:
     """The product's main job: one gated arc on the sim robot with the synthetic camera and the real pipeline."""
     from supervisor.dryrun import DryRunSpec, load_motion, run_dry_run, run_replay
@@ -197,6 +209,20 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("-o", "--out", required=True)
     ev.add_argument("--jobs", type=int, default=None, help="parallel processes (default 2)")
     ev.set_defaults(func=cmd_evaluate)
+
+    tu = sub.add_parser("tune", help="a stage's operating point for a tolerance, by leave-one-scene-out "
+                                      "cross-validation on a benchmark suite")
+    tu.add_argument("bench_dir")
+    tu.add_argument("--stage", required=True)
+    tu.add_argument("--tolerance", required=True, choices=("2mm_3deg", "4mm_10deg"))
+    tu.add_argument("-o", "--out", default=None, help="output directory (default out/tune-STAGE-TOLERANCE)")
+    tu.add_argument("--variants", default=None,
+                    help="comma-separated model variants to choose among (default: the stage's)")
+    tu.add_argument("--error-aware", action="store_true", help="also tune the error-aware boundary's kappa")
+    tu.add_argument("--cache", default=None, help="localization cache directory (default OUT/cache; "
+                                                  "an `evaluate` OUT/cache can be reused)")
+    tu.add_argument("--jobs", type=int, default=None, help="parallel processes (default 2)")
+    tu.set_defaults(func=cmd_tune)
 
     dr = sub.add_parser("dry-run", help="gated arc on the simulated robot with the real pipeline (main job)")
     dr.add_argument("--stage", default=None, help="stage name (default: the config's default_stage)")
