@@ -28,7 +28,7 @@ def _arc(scene: str, az: int, actual_deg: float, slope_deg: float, err_from: int
 
 def test_a_scene_that_needs_a_higher_threshold_incurs_only_when_it_is_held_out():
     arcs = [_arc("a", 0, 20, 0.5), _arc("a", 90, 25, 0.5), _arc("b", 0, 30, 0.5), _arc("c", 0, 22, 0.2)]
-    r = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0))
+    r = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
     assert r["scenes"] == ["a", "b", "c"]
     by_scene = {f["held_out"]: f for f in r["folds"]}
     # c needs n_t >= 54 (10 / 0.2 + 4); a and b only n_t >= 24: held out, c is tuned too low and incurs
@@ -41,14 +41,28 @@ def test_a_scene_that_needs_a_higher_threshold_incurs_only_when_it_is_held_out()
     assert r["cross_validated_static"]["incursions"] == 1
 
 
+def test_the_robust_choice_takes_the_slack_its_own_inner_folds_need():
+    # safe n_t: a, d 24; b 29; c 35.25. Held out c, the plain choice on a, b, d (n_t 29) incurs on c;
+    # the robust one finds, leaving b out of a and d, that 3 deg of slack are needed, and picks n_t 37.
+    arcs = [_arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.4), _arc("c", 0, 22, 0.32), _arc("d", 0, 25, 0.5)]
+    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    robust = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0))
+    held_c = {f["held_out"]: f for f in robust["folds"]}["c"]
+    assert plain["cross_validated"]["incursions"] >= 1
+    assert robust["cross_validated"]["incursions"] == 0
+    assert held_c["slack_deg"] == pytest.approx(3.0) and held_c["chosen"].startswith("logfit_lcb, n_t 37")
+    assert robust["cross_validated"]["mean_spl_deg"] < plain["cross_validated"]["mean_spl_deg"] + 1e-9
+
+
 def test_the_error_bound_can_make_a_low_threshold_safe_and_the_stage_yaml_loads(tmp_path):
     from supervisor.config import load_config
     from supervisor.stages import load_stages
 
     # the steep scene's pose uncertainty reaches the tolerance at position 8 (18 deg, before its 22 deg)
     arcs = [_arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.5), _arc("c", 0, 22, 0.2, err_from=8)]
-    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0))
-    aware = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), error_aware=True)
+    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    aware = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), error_aware=True,
+                           robust=False)
     assert aware["in_sample"]["mean_spl_deg"] > plain["in_sample"]["mean_spl_deg"]
     assert aware["_final"].kappa is not None and aware["_final"].n_t < plain["_final"].n_t
     cfg = load_config(None)

@@ -47,7 +47,7 @@ def tables(report: dict[str, Any]) -> str:
         lines.append("")
 
     lr = ["static", "mlp"] + [s for s in systems if s.startswith("long_range")]
-    ns = ["static"] + [s for s in systems if s.startswith("next_step")]
+    ns = ["static"] + [s for s in systems if s.startswith("next_step") or s == "error_bound"]
     table("Table I — long-range predictors: maximum mean SPL (deg) at zero incursion, arcs", lr, "static")
     table("Table II — next-step predictors: maximum mean SPL (deg) at zero incursion, arcs", ns, "static")
     lines.extend(["## Table III — operating point (n_t; static: envelope in deg) at maximum mean SPL, zero incursion",

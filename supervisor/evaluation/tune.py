@@ -37,6 +37,7 @@ from supervisor.prediction.errorbound import KAPPAS
 from supervisor.prediction.models import VARIANTS
 
 GUARD_FRACTIONS = (0.25, 0.5, 0.75, 1.0, 0.0)  # of the tolerance; 0 = guard off (conservative first)
+SLACKS = tuple(math.radians(d) for d in (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0))  # robust choice: required margin
 _EPS = 1e-9
 
 
@@ -60,6 +61,7 @@ class Grid:
                  hard_limit: float, error_aware: bool) -> None:
         self.arcs = arcs
         self.actual = np.array([r.actual[tol] for r in arcs])
+        self.x_end = np.array([min(r.x_max, hard_limit) for r in arcs])
         kappas: tuple[float | None, ...] = (*sorted(KAPPAS, reverse=True), None) if error_aware else (None,)
         points, rows = [], []
         guard = {g: np.array([r.guard_stop_at(g, tol) for r in arcs]) for g in GUARD_FRACTIONS}
@@ -75,17 +77,37 @@ class Grid:
         self.points = points
         self.stops = np.minimum(np.array(rows), hard_limit)
 
-    def choose(self, cols: np.ndarray) -> int | None:
-        """Index of the best zero-incursion point on the arcs `cols` (None if every point incurs)."""
+    def choose(self, cols: np.ndarray, slack: float = 0.0) -> int | None:
+        """Index of the best point on the arcs `cols` that stops every arc at least `slack` (rad) before its
+        boundary (arcs whose boundary is the arc's end only need not pass it); None if no point does."""
         s, a = self.stops[:, cols], self.actual[cols]
-        safe = ~np.any(s > a + _EPS, axis=1)
+        open_end = a >= self.x_end[cols] - _EPS  # no boundary inside the arc: only passing the end incurs
+        need = np.where(open_end, a, a - slack)
+        safe = ~np.any(s > need + _EPS, axis=1)
         if not safe.any():
             return None
         mean_spl = np.mean(np.minimum(s, a), axis=1)
-        slack = np.min(a - s, axis=1)
+        margin = np.min(np.where(open_end, np.inf, a - s), axis=1)
         score = np.where(safe, mean_spl, -np.inf)
         best = np.flatnonzero(score >= score.max() - 1e-12)
-        return int(best[np.argmax(slack[best])])  # argmax: the first of equal slack (conservative order)
+        return int(best[np.argmax(margin[best])])  # argmax: the first of equal margin (conservative order)
+
+    def choose_robust(self, cols: np.ndarray, scene_of: np.ndarray) -> tuple[int | None, float]:
+        """(point, slack): the smallest slack in SLACKS whose choice is safe on every scene of `cols` when
+        that scene is left out of the choice (an inner leave-one-scene-out on `cols` only), then the
+        point chosen with it on all of `cols`. The largest slack when none is inner-safe."""
+        scenes = sorted(set(scene_of[cols]))
+        for sl in SLACKS:
+            ok = True
+            for sc in scenes:
+                test, train = cols[scene_of[cols] == sc], cols[scene_of[cols] != sc]
+                i = self.choose(train, sl)
+                if i is None or np.any(self.stops[i, test] > self.actual[test] + _EPS):
+                    ok = False
+                    break
+            if ok:
+                return self.choose(cols, sl), sl
+        return self.choose(cols, SLACKS[-1]), SLACKS[-1]
 
 
 def _static_envelope(actual: np.ndarray) -> float:
@@ -123,9 +145,13 @@ def tune(cfg: Config, bench_dir: str | Path, stage: str, tolerance: str, out: st
 
 
 def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tolerance: str,
-                   hard_limit: float, error_aware: bool = False, progress=lambda m: None) -> dict[str, Any]:
+                   hard_limit: float, error_aware: bool = False, progress=lambda m: None,
+                   robust: bool = True) -> dict[str, Any]:
     """Leave-one-scene-out over `arcs` (evaluated datasets): per fold the choice and its held-out stops,
-    the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs."""
+    the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs.
+
+    `robust` (default): each choice also picks its safety slack by an inner leave-one-scene-out on
+    its own training scenes (`Grid.choose_robust`); otherwise the plain best zero-incursion point."""
     scenes = sorted({r.scene or r.name for r in arcs})
     if len(scenes) < 2:
         raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
@@ -135,7 +161,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     folds, held_stops, static_stops = [], np.full(len(arcs), np.nan), np.full(len(arcs), np.nan)
     for sc in scenes:
         test, train = np.flatnonzero(scene_of == sc), np.flatnonzero(scene_of != sc)
-        i = grid.choose(train)
+        i, sl = grid.choose_robust(train, scene_of) if robust else (grid.choose(train), 0.0)
         # no safe point on the training scenes: the stage would not be allowed to move at all
         held_stops[test] = 0.0 if i is None else grid.stops[i, test]
         env = _static_envelope(grid.actual[train])
@@ -144,7 +170,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
                       "arcs": [{"name": arcs[j].name, "stop_deg": held_stops[j] * deg,
                                 "actual_deg": grid.actual[j] * deg,
                                 "incursion": bool(held_stops[j] > grid.actual[j] + _EPS)} for j in test],
-                      "static_envelope_deg": env * deg})
+                      "slack_deg": sl * deg, "static_envelope_deg": env * deg})
         progress(f"  held out {sc:<24} chose {folds[-1]['chosen']}: "
                  + ", ".join(f"{a['stop_deg']:.1f}/{a['actual_deg']:.1f}" for a in folds[-1]["arcs"]))
 
@@ -154,7 +180,8 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
                 "mean_spl_deg": float(np.mean(np.minimum(stops, grid.actual))) * deg}
 
     cv, cv_static = summary(held_stops), summary(static_stops)
-    final = grid.choose(np.arange(len(arcs)))
+    every = np.arange(len(arcs))
+    final, final_slack = grid.choose_robust(every, scene_of) if robust else (grid.choose(every), 0.0)
     return {
         "tolerance": tolerance, "predictor": predictor, "variants": list(variants), "error_aware": error_aware,
         "arcs": len(arcs), "scenes": scenes, "folds": folds,
@@ -162,6 +189,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
         "cv_improvement_over_static": (cv["mean_spl_deg"] / cv_static["mean_spl_deg"] - 1.0)
         if cv_static["mean_spl_deg"] > 0 else None,
         "chosen_on_all_scenes": None if final is None else grid.points[final].describe(),
+        "slack_deg": final_slack * deg, "robust": robust,
         "in_sample": None if final is None else summary(grid.stops[final]),
         "_final": None if final is None else grid.points[final],
     }
