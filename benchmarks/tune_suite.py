@@ -33,7 +33,7 @@ FAMILIES = {
     "fw_lcb": ("fw_lcb",),
     "local_lcb": ("local_lcb",),
     "lcb": ("lcb",),
-    "choose{logfit_lcb,fw_lcb,local_lcb}": ("logfit_lcb", "fw_lcb", "local_lcb"),
+    "choose:logfit_lcb+fw_lcb+local_lcb": ("logfit_lcb", "fw_lcb", "local_lcb"),
 }
 
 
