@@ -80,6 +80,8 @@ class Grid:
     def choose(self, cols: np.ndarray, slack: float = 0.0) -> int | None:
         """Index of the best point on the arcs `cols` that stops every arc at least `slack` (rad) before its
         boundary (arcs whose boundary is the arc's end only need not pass it); None if no point does."""
+        if len(cols) == 0:
+            return None
         s, a = self.stops[:, cols], self.actual[cols]
         open_end = a >= self.x_end[cols] - _EPS  # no boundary inside the arc: only passing the end incurs
         need = np.where(open_end, a, a - slack)
@@ -95,9 +97,10 @@ class Grid:
     def choose_robust(self, cols: np.ndarray, scene_of: np.ndarray) -> tuple[int | None, float]:
         """(point, slack): the smallest slack in SLACKS whose choice is safe on every scene of `cols` when
         that scene is left out of the choice (an inner leave-one-scene-out on `cols` only), then the
-        point chosen with it on all of `cols`. The largest slack when none is inner-safe."""
+        point chosen with it on all of `cols`. The largest slack when none is inner-safe, or when `cols`
+        hold a single scene (nothing to leave out)."""
         scenes = sorted(set(scene_of[cols]))
-        for sl in SLACKS:
+        for sl in SLACKS if len(scenes) > 1 else ():
             ok = True
             for sc in scenes:
                 test, train = cols[scene_of[cols] == sc], cols[scene_of[cols] != sc]
