@@ -7,7 +7,9 @@ at once would end) and envelope usage; then the totals
 against the paper's live trials (74.7% envelope usage, static 60.4%).
 
     .venv/bin/python benchmarks/dryrun_trials.py [-o out/trials] [--stage explore] [--jobs 2]
-        [--scenes phantom,box,...] [--azimuths 0,90,270] [--config FILE]
+        [--scenes phantom,box,...] [--suite v3] [--azimuths 0,90,270] [--config FILE]
+
+Default scenes: those of benchmark suite v3 (`--suite v2` for the previous suite's).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sim.scene import list_scenes  # noqa: E402
+from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
 
 
 def _trial(args: tuple[str, float, str, str, str, str | None]) -> dict:
@@ -68,15 +70,17 @@ def main() -> int:
     ap.add_argument("--stage", default="explore")
     ap.add_argument("--config", default=None, help="configuration YAML (default: the embedded one)")
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--scenes", default=",".join(list_scenes()))
+    ap.add_argument("--suite", choices=sorted(SUITES), default=DEFAULT_SUITE, help="scenes of this benchmark suite")
+    ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: the suite's)")
     ap.add_argument("--azimuths", default="0,90,270")
     ap.add_argument("--modes", default="stop_and_go,continuous")
     a = ap.parse_args()
     out = Path(a.out)
-    labels = trial_labels(a.scenes.split(","))
+    scenes = (a.scenes or ",".join(SUITES[a.suite])).split(",")
+    labels = trial_labels(scenes)
     trials = [(sc, float(az), mode, a.stage, str(trial_dir(out, f"{labels[sc]}_az{int(float(az)):03d}_{mode}")),
                a.config)
-              for sc in a.scenes.split(",") for az in a.azimuths.split(",") for mode in a.modes.split(",")]
+              for sc in scenes for az in a.azimuths.split(",") for mode in a.modes.split(",")]
     print(f"{len(trials)} trials, stage {a.stage}", file=sys.stderr)
     rows = []
     ctx = multiprocessing.get_context("spawn")

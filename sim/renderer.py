@@ -10,6 +10,12 @@ near plane before projection, and the texture level (mip) is chosen so a texel
 covers about one pixel. Then: per-frame gain/offset drift keyed by
 `frame_index`, slight optical blur, seeded read noise, mono8.
 
+Scenes may opt into two lens/pixel effects (`Scene.optics`; off for every suite-v2
+scene, whose renders stay bit-identical): depth of field (a per-pixel blur from the
+thin-lens circle of confusion at the z-buffer's depth) and pixel-footprint filtering
+(each face's texture is integrated over the pixel's footprint, which stretches toward
+edge-on, so fine texture averages away as a face turns).
+
 The light moves with the camera, so the shading of the relief changes with the
 viewpoint: SIFT matches against a model made at one view fade gradually as the
 camera turns, as on real tissue-like surfaces.
@@ -30,6 +36,9 @@ from supervisor.geometry import inv_T, validate_T
 
 _BACKGROUND_DN = 18.0  # beyond the table
 _NEAR_M = 0.005
+_DOF_SIGMAS = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)  # px: blur layers of the depth of field
+_PIXEL_SIGMA = 0.5  # px: the spread a pixel integrates over (footprint filter)
+_TEXEL_SIGMA = 0.5  # texels: the spread the bilinear warp already applies
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,6 +51,36 @@ class RenderedFrame:
     frame_index: int
     noise_seed: int = 0
     visible_faces: tuple[str, ...] = ()  # names of faces with at least one pixel drawn
+
+
+def footprint_filter(texture: np.ndarray, H: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """The texture integrated over a pixel's footprint (anisotropic Gaussian in texture space).
+
+    `H` maps texel coordinates to pixels; its Jacobian J at texel `at` gives the footprint of a
+    pixel spread of `_PIXEL_SIGMA` as the texel covariance s^2 J^-1 J^-T. What the bilinear warp
+    already spreads (`_TEXEL_SIGMA`) is subtracted, so a face seen square-on at about one texel
+    per pixel is left as it is, and only the stretched direction of an oblique face is filtered.
+    """
+    p = H @ np.array([at[0], at[1], 1.0])
+    J = (H[:2, :2] - np.outer(p[:2] / p[2], H[2, :2])) / p[2]
+    try:
+        Ji = np.linalg.inv(J)
+    except np.linalg.LinAlgError:
+        return texture
+    cov = _PIXEL_SIGMA ** 2 * (Ji @ Ji.T)
+    lam, V = np.linalg.eigh(cov)
+    lam = np.maximum(lam - _TEXEL_SIGMA ** 2, 0.0)
+    if lam.max() < 0.04:  # below 0.2 texel: nothing to integrate
+        return texture
+    lam = np.minimum(lam, 400.0) + 1e-3
+    r = int(math.ceil(3.0 * math.sqrt(lam.max())))
+    g = np.arange(-r, r + 1, dtype=np.float64)
+    X, Y = np.meshgrid(g, g)
+    P = np.stack([X.ravel(), Y.ravel()])  # (x = column, y = row), as the texel coordinates of H
+    Ci = V @ np.diag(1.0 / lam) @ V.T
+    k = np.exp(-0.5 * np.einsum("ij,ik,kj->j", P, Ci, P)).reshape(X.shape)
+    k /= k.sum()
+    return cv2.filter2D(texture, -1, k.astype(np.float32), borderType=cv2.BORDER_REFLECT)
 
 
 def clip_polygon_near(P: np.ndarray, near: float) -> np.ndarray:
@@ -130,7 +169,27 @@ class Renderer:
         for assets in self._assets:
             if self._draw_face(assets, T_cam_scene @ assets.face.T_scene_face, canvas, zbuf):
                 visible.append(assets.face.name)
+        if self.scene.optics.aperture > 0:
+            canvas = self._defocus(canvas, zbuf)
         return canvas, tuple(visible)
+
+    def _defocus(self, canvas: np.ndarray, invz: np.ndarray) -> np.ndarray:
+        """Depth of field: blur each pixel by its thin-lens blur disk (diameter fx * A * |1/z - 1/z_f| px,
+        drawn as a Gaussian of sigma = diameter / 4), interpolating between fixed blur layers."""
+        coc = np.float32(self.intrinsics.fx * self.scene.optics.aperture) * \
+            np.abs(invz - np.float32(1.0 / self.scene.focus_distance))
+        levels = np.array(_DOF_SIGMAS, np.float32)
+        sig = np.minimum(coc / np.float32(4.0), levels[-1])
+        k = np.clip(np.searchsorted(levels, sig, side="right") - 1, 0, len(levels) - 2)
+        w = (sig - levels[k]) / (levels[k + 1] - levels[k])
+        out = np.empty_like(canvas)
+        used = np.unique(k)
+        layers = {j: canvas if levels[j] == 0 else cv2.GaussianBlur(canvas, (0, 0), float(levels[j]))
+                  for j in sorted(set(used.tolist()) | set((used + 1).tolist()))}
+        for j in used:
+            m = k == j
+            out[m] = (1.0 - w[m]) * layers[j][m] + w[m] * layers[j + 1][m]
+        return out
 
     def _draw_face(self, assets: _FaceAssets, T_cam_face: np.ndarray, canvas: np.ndarray, zbuf: np.ndarray) -> bool:
         face = assets.face
@@ -160,6 +219,9 @@ class Renderer:
         S = np.array([[f * s0x, 0.0, 0.5 * s0x], [0.0, f * s0y, 0.5 * s0y], [0.0, 0.0, 1.0]])  # texel -> face m
         Hm = self._K @ np.column_stack([R[:, 0], R[:, 1], t]) @ S
         Hm = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ Hm
+        if self.scene.optics.footprint_filter:
+            centre = np.linalg.solve(S, np.append(face.polygon.mean(axis=0), 1.0))
+            shaded = footprint_filter(shaded, Hm, centre)
         warped = cv2.warpPerspective(shaded, Hm, (bw, bh), flags=cv2.INTER_LINEAR,
                                      borderMode=cv2.BORDER_REPLICATE)
 

@@ -78,6 +78,31 @@ class Sensor:
     offset_dn: float  # offset drift amplitude, DN
 
 
+@dataclass(frozen=True)
+class Optics:
+    """Lens and pixel effects a scene may opt into (all off: the pinhole camera with point-sampled
+    textures that every suite-v2 scene uses, whose renders stay bit-identical).
+
+    - `aperture`: entrance-pupil diameter (m); > 0 turns on depth of field. A point at depth z
+      images as a blur disk of diameter fx * aperture * |1/z - 1/focus| pixels (thin lens,
+      z >> focal length), drawn as a Gaussian of the disk's variance (sigma = diameter / 4).
+    - `focus`: the in-focus distance (m); None = the scene's view radius (focused on the pivot
+      at the start view, as an operator would set it).
+    - `footprint_filter`: each pixel integrates the texture over its footprint on the surface.
+      Toward edge-on that footprint stretches by 1/cos(obliquity) across the tilt, so texture
+      finer than the stretched footprint averages away (the mip level alone, chosen by depth,
+      only accounts for distance).
+    """
+
+    aperture: float = 0.0
+    focus: float | None = None
+    footprint_filter: bool = False
+
+    @property
+    def active(self) -> bool:
+        return self.aperture > 0 or self.footprint_filter
+
+
 @dataclass(frozen=True, eq=False)
 class Face:
     """A planar convex polygon inside a texture rectangle of `size` (w, h) metres."""
@@ -121,6 +146,12 @@ class Scene:
     ground: Face
     lighting: Lighting
     sensor: Sensor
+    optics: Optics = Optics()
+
+    @property
+    def focus_distance(self) -> float:
+        """m: where the lens is focused (the view radius unless the scene says otherwise)."""
+        return self.view.radius if self.optics.focus is None else self.optics.focus
 
     @property
     def all_faces(self) -> tuple[Face, ...]:
@@ -186,6 +217,7 @@ def _parse(root: Node, name: str, sha: str, source: Path) -> Scene:
     texel = root.number("texel_mm", 0.2, min=0.02, max=5.0) / 1000.0
     lighting = _lighting(root.child("lighting", {}))
     sensor = _sensor(root.child("sensor", {}))
+    optics = _optics(root.child("optics", {}))
 
     materials = {mname: _material(mname, node) for mname, node in root.children("materials")}
 
@@ -238,7 +270,7 @@ def _parse(root: Node, name: str, sha: str, source: Path) -> Scene:
         raise root.error("objects", "at least one object is required")
     root.done()
     return Scene(name, seed, sha, source, description, T_base_scene, pivot, view, board, T_scene_board,
-                 tuple(faces), board_face, ground, lighting, sensor)
+                 tuple(faces), board_face, ground, lighting, sensor, optics)
 
 
 def _material(name: str, n: Node) -> Material:
@@ -271,6 +303,14 @@ def _lighting(n: Node) -> Lighting:
 def _sensor(n: Node) -> Sensor:
     out = Sensor(n.number("noise_dn", 2.0, min=0.0, max=50.0), n.number("blur_px", 0.6, min=0.0, max=5.0),
                  n.number("drift", 0.03, min=0.0, max=0.5), n.number("offset_dn", 2.0, min=0.0, max=50.0))
+    n.done()
+    return out
+
+
+def _optics(n: Node) -> Optics:
+    focus = n.number("focus_mm", 0.0, min=0.0, max=5000.0)
+    out = Optics(n.number("aperture_mm", 0.0, min=0.0, max=50.0) / 1000.0, focus / 1000.0 if focus > 0 else None,
+                 n.boolean("footprint_filter", False))
     n.done()
     return out
 

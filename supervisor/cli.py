@@ -62,7 +62,7 @@ def cmd_benchmark_generate(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     t0 = time.monotonic()
-    out = generate_suite(cfg, args.out, quick=args.quick, jobs=args.jobs, seed=args.seed)
+    out = generate_suite(cfg, args.out, quick=args.quick, jobs=args.jobs, seed=args.seed, suite=args.suite)
     print(f"benchmark suite ready in {out} ({time.monotonic() - t0:.0f} s)")
     return 0
 
@@ -185,6 +185,18 @@ def cmd_evolution_fit_guided(args: argparse.Namespace) -> int:
     out = Path(args.output)
     offline.write_atomic(out, json.dumps(dict(gm.to_json(), meta=meta), indent=1).encode())
     print(f"wrote guided model {out}: b = {', '.join(f'{v:.2f}' for v in gm.b)} ({n_good} good runs of {n_runs})")
+    return 0
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    from supervisor.evaluation.tune import format_report, tune
+
+    cfg = _config(args)
+    variants = tuple(v for v in args.variants.split(",") if v) if args.variants else None
+    out = args.out or f"out/tune-{args.stage}-{args.tolerance}"
+    report = tune(cfg, args.bench_dir, args.stage, args.tolerance, out, cache=args.cache, variants=variants,
+                  error_aware=args.error_aware, jobs=args.jobs or 2)
+    print(format_report(report))
     return 0
 
 
@@ -369,6 +381,8 @@ def build_parser() -> argparse.ArgumentParser:
     bg = bm.add_parser("generate", help="record the benchmark suite (>= 21 arcs + 4 lines)")
     bg.add_argument("out")
     bg.add_argument("--quick", action="store_true", help="3 images per position instead of 10")
+    bg.add_argument("--suite", choices=("v2", "v3"), default="v3",
+                    help="v3 (default): every v2 dataset plus the decay-shape scenes; v2: the previous suite exactly")
     bg.add_argument("--jobs", type=int, default=None, help="parallel processes (default: up to 2)")
     bg.add_argument("--seed", type=int, default=0)
     bg.set_defaults(func=cmd_benchmark_generate)
@@ -391,6 +405,20 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("-o", "--out", required=True)
     ev.add_argument("--jobs", type=int, default=None, help="parallel processes (default 2)")
     ev.set_defaults(func=cmd_evaluate)
+
+    tu = sub.add_parser("tune", help="a stage's operating point for a tolerance, by leave-one-scene-out "
+                                      "cross-validation on a benchmark suite")
+    tu.add_argument("bench_dir")
+    tu.add_argument("--stage", required=True)
+    tu.add_argument("--tolerance", required=True, choices=("2mm_3deg", "4mm_10deg"))
+    tu.add_argument("-o", "--out", default=None, help="output directory (default out/tune-STAGE-TOLERANCE)")
+    tu.add_argument("--variants", default=None,
+                    help="comma-separated model variants to choose among (default: the stage's)")
+    tu.add_argument("--error-aware", action="store_true", help="also tune the error-aware boundary's kappa")
+    tu.add_argument("--cache", default=None, help="localization cache directory (default OUT/cache; "
+                                                  "an `evaluate` OUT/cache can be reused)")
+    tu.add_argument("--jobs", type=int, default=None, help="parallel processes (default 2)")
+    tu.set_defaults(func=cmd_tune)
 
     dr = sub.add_parser("dry-run", help="gated arc on the simulated robot with the real pipeline (main job)")
     dr.add_argument("--stage", default=None, help="stage name (default: the config's default_stage)")

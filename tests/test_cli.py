@@ -433,3 +433,33 @@ def test_dry_run_bad_motion_file(tmp_path: Path, capfd: pytest.CaptureFixture[st
     err = capfd.readouterr().err
     assert str(motion) in err and words in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------------------- tune
+
+def test_tune_cross_validates_over_scenes_and_writes_a_loadable_stage(dataset: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    import csv
+    import json
+
+    from supervisor.stages import load_stages
+
+    bench = tmp_path / "bench"
+    for scene in ("phantom", "phantom_twin"):  # the same recording under two scene names: two folds
+        d = copy_dataset(dataset, bench / f"{dataset.name}_{scene}")
+        meta = json.loads((d / "dataset.json").read_text())
+        meta["scene"]["name"] = scene
+        (d / "dataset.json").write_text(json.dumps(meta))
+    out = tmp_path / "tune"
+    assert main(["tune", str(bench), "--stage", "explore", "--tolerance", "4mm_10deg", "-o", str(out),
+                 "--jobs", "1", "--error-aware"]) == 0
+    assert "cross-validated: incursion rate" in capsys.readouterr().out
+    report = json.loads((out / "tune.json").read_text())
+    assert report["scenes"] == ["phantom", "phantom_twin"] and len(report["folds"]) == 2
+    assert load_stages(out / "explore.yaml")["explore"].predictor == "next_step"
+    with (out / "cache" / f"{dataset.name}_phantom.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    ok = [r for r in rows if r["status"] == "OK"]
+    assert ok and all(0 < float(r["sd_mm"]) < 5 for r in ok)  # the pose uncertainty is recorded
+    assert main(["tune", str(bench), "--stage", "nope", "--tolerance", "2mm_3deg", "-o", str(out),
+                 "--cache", str(out / "cache"), "--jobs", "1"]) == 2  # unknown stage: one line, status 2

@@ -41,7 +41,8 @@ def test_observation_guard_stops_when_the_frames_here_are_already_below_threshol
     assert fit_variant("paper", x, n).boundary(150, 40.5, 45.0) == 45.0  # late: non-conservative
     for variant in VARIANTS[1:]:
         assert fit_variant(variant, x, n).boundary(150, 40.5, 45.0) == 40.5
-        assert fit_variant(variant, x, n, guard=False).boundary(150, 40.5, 45.0) > 40.5
+        if not variant.startswith("local"):  # the local rate sees the drop without the guard
+            assert fit_variant(variant, x, n, guard=False).boundary(150, 40.5, 45.0) > 40.5
 
 
 def test_confidence_band_is_cautious_even_when_the_point_estimate_never_falls_in_range():

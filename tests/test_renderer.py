@@ -256,3 +256,51 @@ def test_coarser_texture_levels_stay_registered_with_level_zero(tmp_path: Path):
         (dx, dy), _ = cv2.phaseCorrelate(a, b)
         shifts.append(math.hypot(dx, dy))
     assert max(shifts) < 0.05, shifts
+
+
+def _detail(img: np.ndarray, win) -> float:
+    """High-frequency energy (variance of the Laplacian) in a window."""
+    return float(cv2.Laplacian(img.astype(np.float32), cv2.CV_32F)[win].var())
+
+
+def test_depth_of_field_blurs_by_the_thin_lens_circle_of_confusion(tmp_path: Path):
+    import dataclasses
+
+    from sim.scene import Optics
+
+    p = tmp_path / "dof.yaml"
+    p.write_text(_MIP_SCENE)
+    scene = load_scene(p)
+    centre = _base(scene, [0.0, 0.0, 0.01])
+    T = look_at(_base(scene, [0.0, 0.0, 0.36]), centre, np.array([1.0, 0.0, 0.0]))  # plate 0.35 m away
+    win = (slice(312, 712), slice(440, 840))
+    sharp, _ = Renderer(scene, INTR).render_radiance(T)
+    in_focus, _ = Renderer(dataclasses.replace(scene, optics=Optics(0.01, 0.35)), INTR).render_radiance(T)
+    # focused 5 cm behind: disk 1400 * 0.01 * |1/0.35 - 1/0.40| = 5 px, sigma 1.25 px
+    blurred, _ = Renderer(dataclasses.replace(scene, optics=Optics(0.01, 0.40)), INTR).render_radiance(T)
+    # the plate is at the focus (within 1 mm): all but untouched
+    assert np.abs(in_focus - sharp)[win].mean() < 0.05 * np.abs(blurred - sharp)[win].mean()
+    ref = cv2.GaussianBlur(sharp, (0, 0), 1.25)
+    assert np.abs(blurred - ref)[win].mean() < 0.1 * np.abs(sharp - ref)[win].mean()
+    assert _detail(blurred, win) < 0.3 * _detail(sharp, win)
+
+
+def test_footprint_filter_leaves_square_on_faces_and_averages_fine_texture_toward_edge_on(tmp_path: Path):
+    import dataclasses
+
+    from sim.scene import Optics
+
+    p = tmp_path / "fp.yaml"
+    p.write_text(_MIP_SCENE)
+    scene = load_scene(p)
+    plain, filt = Renderer(scene, INTR), Renderer(dataclasses.replace(scene, optics=Optics(footprint_filter=True)), INTR)
+    centre = _base(scene, [0.0, 0.0, 0.01])
+    win = (slice(462, 562), slice(590, 690))
+    square_on = look_at(_base(scene, [0.0, 0.0, 0.30]), centre, np.array([1.0, 0.0, 0.0]))
+    a, b = plain.render_radiance(square_on)[0], filt.render_radiance(square_on)[0]
+    assert _detail(b, win) > 0.8 * _detail(a, win)
+    d = 0.30
+    oblique = look_at(centre + d * np.array([math.sin(math.radians(75)), 0.0, math.cos(math.radians(75))]), centre,
+                      np.array([0.0, 0.0, 1.0]))  # 75 deg from the plate's normal
+    a, b = plain.render_radiance(oblique)[0], filt.render_radiance(oblique)[0]
+    assert _detail(b, win) < 0.6 * _detail(a, win)

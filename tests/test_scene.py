@@ -136,11 +136,33 @@ def test_benchmark_suite_scenes_are_shipped_and_at_least_seven_on_three_azimuths
     from supervisor.dataset.benchmark import SUITE_SCENES, suite_items
 
     assert set(SUITE_SCENES) <= set(list_scenes()) and len(set(SUITE_SCENES)) >= 7
-    items = suite_items(load_config(None))
+    items = suite_items(load_config(None), "v2")
     arcs = [i for i in items if i.kind == "arc"]
     assert len(arcs) == 3 * len(SUITE_SCENES) and {i.azimuth_deg for i in arcs} == {0.0, 90.0, 270.0}
     assert len({i.name for i in items}) == len(items)
     assert sum(i.kind == "line" for i in items) == 4
+
+
+def test_suite_v3_keeps_every_v2_dataset_and_adds_the_decay_scenes():
+    from supervisor.config import load_config
+    from supervisor.dataset.benchmark import V3_NEW_SCENES, suite_items
+
+    cfg = load_config(None)
+    v2, v3 = suite_items(cfg, "v2"), suite_items(cfg, "v3")
+    assert set(v2) < set(v3) and set(V3_NEW_SCENES) <= set(list_scenes())
+    new = {i.scene for i in set(v3) - set(v2)}
+    assert new == set(V3_NEW_SCENES)
+    assert suite_items(cfg) == v3  # v3 is the default
+    with pytest.raises(ValueError, match="unknown suite"):
+        suite_items(cfg, "v9")
+
+
+@pytest.mark.parametrize("name", ["tile_fine", "wedge_dof", "bone_dof"])
+def test_decay_scenes_opt_into_optics_and_v2_scenes_do_not(name):
+    from supervisor.dataset.benchmark import SUITE_SCENES
+
+    assert load_scene(name).optics.active
+    assert not any(load_scene(s).optics.active for s in SUITE_SCENES)
 
 
 @pytest.mark.parametrize("name", [n for n in list_scenes() if n.endswith("_foam")])

@@ -18,6 +18,15 @@ at half contrast, relief doubled), one rule applied to all six; phantom and
 phantom_glossy already met the decay and stay. The rule was chosen and checked with
 the localization checks alone (benchmarks/localization_suite.py), not with any
 predictor. Suite v1 scenes stay shipped for dry-runs.
+
+Suite v3 (the default of `benchmark generate`; `--suite v2` rebuilds v2 exactly) keeps every
+v2 arc and line and adds `V3_NEW_SCENES`: decay shapes that v2 lacks, where n_i holds on a
+plateau and then falls, each from one physical effect (see each scene file's header):
+foreshortened fine texture under pixel-footprint integration (tile_fine), defocus as the
+target leaves a shallow depth of field (wedge_dof; bone_dof with faces turning away as
+well), specular washout as a clear coat turns toward the mirror direction (plate_clearcoat)
+and self-occlusion by a tray's walls (tray_walls). They were frozen (committed) before any
+predictor was run on them.
 """
 
 from __future__ import annotations
@@ -40,6 +49,9 @@ SUITE_FILE = "suite.json"
 ARC_AZIMUTHS_DEG = (0.0, 90.0, 270.0)
 SUITE_SCENES = ("box_foam", "box_fine_foam", "bracket_foam", "phantom", "phantom_glossy", "phantom_lowrelief_foam",
                 "plate_foam", "plate_matte_foam")
+V3_NEW_SCENES = ("bone_dof", "plate_clearcoat", "tile_fine", "tray_walls", "wedge_dof")
+SUITES = {"v2": SUITE_SCENES, "v3": SUITE_SCENES + V3_NEW_SCENES}
+DEFAULT_SUITE = "v3"
 LINE_SCENE = "phantom"
 
 
@@ -52,9 +64,11 @@ class SuiteItem:
     start_offset_deg: float = 0.0
 
 
-def suite_items(cfg: Config) -> list[SuiteItem]:
+def suite_items(cfg: Config, suite: str = DEFAULT_SUITE) -> list[SuiteItem]:
+    if suite not in SUITES:
+        raise ValueError(f"unknown suite {suite!r}; expected one of {sorted(SUITES)}")
     items = [SuiteItem(f"arc_{scene}_az{int(az):03d}", "arc", scene, azimuth_deg=az)
-             for scene in SUITE_SCENES for az in ARC_AZIMUTHS_DEG]
+             for scene in SUITES[suite] for az in ARC_AZIMUTHS_DEG]
     items += [SuiteItem(f"line_{LINE_SCENE}_off{round(math.degrees(o)):02d}", "line", LINE_SCENE,
                         start_offset_deg=math.degrees(o)) for o in cfg.dataset.line.start_offsets]
     return items
@@ -75,13 +89,16 @@ def _run_item(config_file: str, out: str, item: SuiteItem, images_per_position: 
     return time.monotonic() - t0
 
 
-def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int | None = None, seed: int = 0) -> Path:
-    """Generate (or complete) the benchmark suite under `out`."""
+def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int | None = None, seed: int = 0,
+                   suite: str = DEFAULT_SUITE) -> Path:
+    """Generate (or complete) the benchmark suite `suite` (v2 or v3) under `out`."""
     out = Path(out)
-    items = suite_items(cfg)
+    items = suite_items(cfg, suite)
     ipp = 3 if quick else None
     manifest = {"config_sha256": cfg.sha256, "quick": quick, "seed": seed, "images_per_position": ipp or "config",
                 "datasets": [asdict(i) for i in items]}
+    if suite != "v2":
+        manifest["suite"] = suite  # a v2 manifest stays exactly what v2 wrote
     mf = out / SUITE_FILE
     prepare_incremental(out, "benchmark generate", known=[SUITE_FILE, *(i.name for i in items)])
     if mf.exists():

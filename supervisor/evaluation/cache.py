@@ -20,7 +20,7 @@ from supervisor.localization.offline import FrameArtifact
 from supervisor.localization.settings import LocalizerSettings
 
 
-CACHE_FORMAT = 3  # bump when the CSV's columns change: older caches are recomputed
+CACHE_FORMAT = 4  # v3: + iou8 (paper 2's metric); v4: + sd_mm, sd_deg (pose uncertainty). Bump when the CSV's columns change: older caches are recomputed
 
 
 def cache_key(ds: Dataset, settings: LocalizerSettings) -> str:
@@ -47,7 +47,8 @@ def read_artifacts(path: Path) -> list[FrameArtifact]:
                     math.radians(float(r["r_err_deg"])), float(r["reproj_px"]), r["status"],
                     float(r["latency_ms"]) / 1000, timings, roi,  # type: ignore[arg-type]
                     float(r["drift_mm"]) / 1000, math.radians(float(r["drift_deg"])),
-                    float(r.get("iou8") or "nan")))
+                    float(r.get("iou8") or "nan"),
+                    float(r.get("sd_mm") or "nan") / 1000, math.radians(float(r.get("sd_deg") or "nan"))))
             except (KeyError, ValueError) as exc:
                 raise DatasetError(path, f"bad localization row {len(rows) + 1}: {exc}") from exc
     return rows

@@ -10,7 +10,10 @@ each system would produce at each operating point:
 - ``next_step[_<variant>]``: the angle where the next-step rule stops the robot
   (refit after every position; the first k positions are a warm-up, as in the
   supervisor loop; after it, a position without a valid model stops it);
-- ``mlp``: the paper's MLP, long-range style (its Table I).
+- ``mlp``: the paper's MLP, long-range style (its Table I);
+- ``error_bound`` and ``next_step_<variant>_err`` (beyond the paper): the error-aware boundary
+  (prediction/errorbound.py) alone, operating point kappa, and together with an n_i system,
+  operating point (n_t, kappa): the robot stops at whichever stops first.
 
 Fits are computed once per prefix of positions and reused for every n_t.
 Arc and line datasets are reported separately (the paper's Tables I-III, and
@@ -39,6 +42,7 @@ from supervisor.evaluation.cache import localized
 from supervisor.outputs import prepare_incremental
 from supervisor.evaluation.metrics import CurvePoint, actual_boundary, max_mean_spl_zero_incursion, spl
 from supervisor.prediction.emg import ANGLE, TRANSLATION
+from supervisor.prediction.errorbound import KAPPAS, ErrorTrend, log_margin, position_log_sd
 from supervisor.prediction.mlp import MLPPredictor
 from supervisor.prediction.models import VARIANTS, fit_variant
 
@@ -49,6 +53,7 @@ STATIC_LINE = tuple(np.arange(0.0, 0.150 + 1e-9, 0.001))
 K_POSITIONS = {"arc": 4, "line": 5}
 IMPROVED = tuple(v for v in VARIANTS if v != "paper")
 GUARD_FRACTION = 0.5  # consistency-guard limits as a fraction of the tolerance (the shipped stages: 2 mm/5 deg)
+ERR_BASES = ("logfit_lcb", "fw_lcb", "local_lcb")  # n_i systems evaluated with the error-aware boundary
 
 
 def systems() -> list[str]:
@@ -57,7 +62,20 @@ def systems() -> list[str]:
     # next-step with the supervisor loop's consistency guard (target-pose drift in the base frame),
     # its limits half of the tolerance under test (GUARD_FRACTION)
     out += ["next_step_guard"] + [f"next_step_{v}_guard" for v in IMPROVED]
+    # the error-aware boundary, alone (kappa) and with an n_i system (n_t, kappa)
+    out += ["error_bound"] + [f"next_step_{v}_err" for v in ERR_BASES]
     return out
+
+
+def operating_points(system: str, kind: str) -> list:
+    """Every operating point of `system`: static envelopes (SI), n_t, kappa, or (n_t, kappa) pairs."""
+    if system == "static":
+        return list(STATIC_ARC if kind == "arc" else STATIC_LINE)
+    if system == "error_bound":
+        return list(KAPPAS)
+    if system.endswith("_err"):
+        return [(nt, k) for k in KAPPAS for nt in N_T]
+    return list(N_T)
 
 
 @dataclass(frozen=True)
@@ -70,18 +88,42 @@ class DatasetResult:
     guard_stop: dict[str, float]  # per tolerance: where the consistency guard stops (inf: never)
     positions: list[float]
     n_mean: list[float]
+    scene: str = ""
+    # per tolerance, per position: log(upper pose-uncertainty bound one step ahead / tolerance) at
+    # kappa = 1 (errorbound.log_margin; nan during the warm-up): kappa stops there once >= -log kappa
+    err_margin: dict[str, list[float]] = field(default_factory=dict)
+    drift: list[tuple[float, float]] = field(default_factory=list)  # per position: mean guard drift (m, rad)
     # paper 2's metric per position: mean iou8 over the localized frames (nan where none localized)
     iou8_mean: list[float] = field(default_factory=list)
+
+    def error_stop(self, tol: str, kappa: float) -> float:
+        """Where the error-aware boundary alone stops at `kappa` (x_max if it never does)."""
+        lk = math.log(kappa)
+        for x, m in zip(self.positions, self.err_margin.get(tol, [])):
+            if m + lk >= 0:  # nan (warm-up) compares False
+                return float(x)
+        return self.x_max
+
+    def guard_stop_at(self, fraction: float, tol: str) -> float:
+        """Where the consistency guard at `fraction` of the tolerance stops (inf: never; 0 = off)."""
+        if fraction <= 0:
+            return math.inf
+        tt, tr = TOLERANCES[tol]
+        for x, (dt, dr) in zip(self.positions, self.drift):
+            if dt > fraction * tt or dr > fraction * tr:
+                return float(x)
+        return math.inf
 
 
 def _per_position(rows, kind: str):
     """Per sampling position: mean coordinate, samples (x, n_i), mean errors against ground truth,
-    and mean consistency drift (t, r) over the localized frames (nan where none localized)."""
+    mean consistency drift (t, r) over the localized frames (nan where none localized), and the
+    per-position pose uncertainty (errorbound.position_log_sd of sd_t and sd_r)."""
     var = "theta" if kind == "arc" else "x"
     groups: dict[int, list] = {}
     for r in rows:
         groups.setdefault(r.position, []).append(r)
-    xs, xsamp, nsamp, te, re, dt, dr = [], [], [], [], [], [], []
+    xs, xsamp, nsamp, te, re, dt, dr, lt, lr = [], [], [], [], [], [], [], [], []
     for _, rs in sorted(groups.items()):
         xs.append(float(np.mean([getattr(r, var) for r in rs])))
         xsamp.append(np.array([getattr(r, var) for r in rs], float))
@@ -91,10 +133,14 @@ def _per_position(rows, kind: str):
         ok = [r for r in rs if r.status == "OK" and math.isfinite(r.drift_t)]
         dt.append(float(np.mean([r.drift_t for r in ok])) if ok else math.nan)
         dr.append(float(np.mean([r.drift_r for r in ok])) if ok else math.nan)
-    return np.array(xs), xsamp, nsamp, np.array(te), np.array(re), np.array(dt), np.array(dr)
+        lt.append(position_log_sd([r.sd_t if r.status == "OK" else math.nan for r in rs]))
+        lr.append(position_log_sd([r.sd_r if r.status == "OK" else math.nan for r in rs]))
+    return (np.array(xs), xsamp, nsamp, np.array(te), np.array(re), np.array(dt), np.array(dr),
+            np.array(lt), np.array(lr))
 
 
-def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = GUARD_FRACTION) -> DatasetResult:
+def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = GUARD_FRACTION,
+                     scene: str = "") -> DatasetResult:
     """All systems at all operating points on one dataset's per-frame artifacts.
 
     Guarded systems (`*_guard`) add the consistency guard as the supervisor loop applies it:
@@ -102,7 +148,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     tolerance under test (translation or rotation) means no further motion; 0 turns it off.
     """
     axis = ANGLE if kind == "arc" else TRANSLATION
-    x, xsamp, nsamp, te, re, dt, dr = _per_position(rows, kind)
+    x, xsamp, nsamp, te, re, dt, dr, lt, lr = _per_position(rows, kind)
     if len(x) < 2:
         raise DatasetError(Path(name), f"{len(x)} sampling positions; evaluation needs at least 2")
     x_max = float(x[-1])
@@ -156,8 +202,20 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         if r.status == "OK" and math.isfinite(r.iou8):
             iou.setdefault(r.position, []).append(r.iou8)
     iou8_mean = [float(np.mean(iou[p])) if p in iou else math.nan for p in sorted({r.position for r in rows})]
+    # The error-aware boundary: after each position (past the warm-up) the uncertainty trend one step ahead.
+    step_si = float(np.median(np.diff(x)))
+    err_margin: dict[str, list[float]] = {}
+    for tol, (tt, tr) in TOLERANCES.items():
+        ms = []
+        for k in range(len(x)):
+            if k + 1 < k_lr:
+                ms.append(math.nan)
+                continue
+            trends = [(ErrorTrend.fit(x[:k + 1], lt[:k + 1]), tt), (ErrorTrend.fit(x[:k + 1], lr[:k + 1]), tr)]
+            ms.append(log_margin(trends, float(x[k]) + step_si, 1.0))
+        err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
-                         iou8_mean)
+                         scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean)
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:
@@ -172,14 +230,20 @@ def _job(args: tuple[str, str, str | None]) -> DatasetResult:
     if not ds.has_ground_truth:
         raise DatasetError(ds.root, "no ground-truth target poses: evaluation needs them (prediction does not)")
     rows = localized(Path(ds_root), Path(cache_dir), cfg.localization)
-    return evaluate_dataset(ds.name, ds.kind, rows)
+    return evaluate_dataset(ds.name, ds.kind, rows, scene=str(ds.meta.get("scene", {}).get("name", "")))
 
 
 def _stop(r: DatasetResult, system: str, i: int, tol: str) -> float:
-    """Stop of `system` at operating point `i`; a guarded system stops where its base system or the
-    guard (at this tolerance's limits) stops first."""
+    """Stop of `system` at operating point `i` (an index into `operating_points`); a guarded system
+    stops where its base system or the guard (at this tolerance's limits) stops first, an error-aware
+    one where its base system or the error bound does."""
     if system.endswith("_guard"):
         return min(r.stops[system.removesuffix("_guard")][i], r.guard_stop[tol])
+    if system == "error_bound":
+        return r.error_stop(tol, KAPPAS[i])
+    if system.endswith("_err"):
+        k, j = divmod(i, len(N_T))
+        return min(r.stops[system.removesuffix("_err")][j], r.error_stop(tol, KAPPAS[k]))
     return r.stops[system][i]
 
 
@@ -199,21 +263,32 @@ def _curves(results: list[DatasetResult], kind: str) -> dict[str, Any]:
         actual = [r.actual[tol] for r in res]
         per_system: dict[str, Any] = {}
         for system in systems():
-            ops = (STATIC_ARC if kind == "arc" else STATIC_LINE) if system == "static" else N_T
+            ops = operating_points(system, kind)
             curve = []
             for i, op in enumerate(ops):
                 stops = [op if system == "static" else _stop(r, system, i, tol) for r in res]
                 pairs = list(zip(stops, actual))
-                curve.append(CurvePoint(float(op), float(np.mean([spl(p, a) for p, a in pairs])),
+                curve.append(CurvePoint(float(i), float(np.mean([spl(p, a) for p, a in pairs])),
                                         sum(p > a + 1e-9 for p, a in pairs) / len(pairs), tuple(stops)))
             best = max_mean_spl_zero_incursion(curve)
             op_scale = unit_scale if system == "static" else 1.0
+
+            def op_value(i: int):
+                op = ops[i]
+                return list(op) if isinstance(op, tuple) else op * op_scale
+
+            if system.endswith("_err"):  # plot the n_t sweep at the best kappa (or the first kappa)
+                k0 = 0 if best is None else int(best.operating_point) // len(N_T)
+                shown = curve[k0 * len(N_T):(k0 + 1) * len(N_T)]
+            else:
+                shown = curve
             per_system[system] = {
                 "max_mean_spl_zero_incursion": None if best is None else best.mean_spl * unit_scale,
-                "operating_point": None if best is None else best.operating_point * op_scale,
-                "operating_point_kind": "static envelope" if system == "static" else "n_t",
-                "curve": [{"operating_point": c.operating_point * op_scale, "mean_spl": c.mean_spl * unit_scale,
-                           "incursion_rate": c.incursion_rate} for c in curve],
+                "operating_point": None if best is None else op_value(int(best.operating_point)),
+                "operating_point_kind": {"static": "static envelope", "error_bound": "kappa"}.get(
+                    system, "[n_t, kappa]" if system.endswith("_err") else "n_t"),
+                "curve": [{"operating_point": op_value(int(c.operating_point)), "mean_spl": c.mean_spl * unit_scale,
+                           "incursion_rate": c.incursion_rate} for c in shown],
             }
         out[tol] = per_system
     return out
@@ -240,17 +315,15 @@ def _ceiling(results: list[DatasetResult], kind: str) -> dict[str, Any]:
 EVALUATE_FILES = ("cache", "results.json", "tables.md", "spl_vs_incursion_arc.png", "spl_vs_incursion_line.png")
 
 
-def run_evaluation(cfg: Config, bench_dir: str | Path, out: str | Path, jobs: int = 2,
-                   progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
-    bench_dir = Path(bench_dir)
-    out = prepare_incremental(out, "evaluate", known=EVALUATE_FILES)  # before any work
+def evaluate_suite(cfg: Config, bench_dir: str | Path, cache: str | Path, jobs: int = 2,
+                   progress=lambda m: print(m, file=sys.stderr, flush=True)) -> list[DatasetResult]:
+    """Every dataset of a suite localized (cached in `cache`) and replayed: results sorted by name."""
+    bench_dir, cache = Path(bench_dir), Path(cache)
     datasets = load_suite(bench_dir)
     if not datasets:
         raise DatasetError(bench_dir, "no datasets found (expected a benchmark suite or dataset directories)")
-    cache = out / "cache"
     cache.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
-    progress(f"evaluate: {len(datasets)} datasets, {len(systems())} systems, n_t {N_T[0]}..{N_T[-1]}")
     results: list[DatasetResult] = []
     args = [(str(d), str(cache), None if cfg.file is None else str(cfg.file)) for d in datasets]
     # spawn, not fork: OpenCV's thread pools do not survive a fork of a process that has used them.
@@ -260,7 +333,16 @@ def run_evaluation(cfg: Config, bench_dir: str | Path, out: str | Path, jobs: in
             progress(f"  [{k}/{len(datasets)}] {r.name}: theta_a(4mm/10deg) = "
                      f"{r.actual['4mm_10deg'] * _report_unit(r.kind):.2f} "
                      f"{'deg' if r.kind == 'arc' else 'mm'}  ({time.monotonic() - t0:.0f} s)")
-    results.sort(key=lambda r: r.name)
+    return sorted(results, key=lambda r: r.name)
+
+
+def run_evaluation(cfg: Config, bench_dir: str | Path, out: str | Path, jobs: int = 2,
+                   progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
+    bench_dir = Path(bench_dir)
+    out = prepare_incremental(out, "evaluate", known=EVALUATE_FILES)  # before any work
+    t0 = time.monotonic()
+    progress(f"evaluate: {len(systems())} systems, n_t {N_T[0]}..{N_T[-1]}")
+    results = evaluate_suite(cfg, bench_dir, out / "cache", jobs, progress)
     report = {
         "config_sha256": cfg.sha256,
         "datasets": [{"name": r.name, "kind": r.kind, "actual_boundary": r.actual, "positions": r.positions,

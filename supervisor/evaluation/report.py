@@ -20,6 +20,14 @@ def _fmt(v: float | None) -> str:
     return "—" if v is None else f"{v:.1f}"
 
 
+def _fmt_op(o: Any) -> str:
+    if o is None:
+        return "—"
+    if isinstance(o, (list, tuple)):
+        return "n_t " + f"{o[0]:g}, kappa {o[1]:g}"
+    return f"{o:g}"
+
+
 def tables(report: dict[str, Any]) -> str:
     arc = report.get("arc", {})
     tols = list(arc.keys())
@@ -39,14 +47,14 @@ def tables(report: dict[str, Any]) -> str:
         lines.append("")
 
     lr = ["static", "mlp"] + [s for s in systems if s.startswith("long_range")]
-    ns = ["static"] + [s for s in systems if s.startswith("next_step")]
+    ns = ["static"] + [s for s in systems if s.startswith("next_step") or s == "error_bound"]
     table("Table I — long-range predictors: maximum mean SPL (deg) at zero incursion, arcs", lr, "static")
     table("Table II — next-step predictors: maximum mean SPL (deg) at zero incursion, arcs", ns, "static")
     lines.extend(["## Table III — operating point (n_t; static: envelope in deg) at maximum mean SPL, zero incursion",
                   "", "| system | " + " | ".join(tols) + " |", "|---|" + "---|" * len(tols)])
     for s in systems:
         ops = [arc[t][s]["operating_point"] for t in tols]
-        lines.append(f"| {s} | " + " | ".join("—" if o is None else f"{o:g}" for o in ops) + " |")
+        lines.append(f"| {s} | " + " | ".join(_fmt_op(o) for o in ops) + " |")
     lines.append("")
     line = report.get("line", {})
     if line:
@@ -73,7 +81,7 @@ def tables(report: dict[str, Any]) -> str:
 
 
 _VARIANT_COLORS = {"": "tab:blue", "logfit": "tab:orange", "lcb": "tab:green", "logfit_lcb": "tab:red",
-                   "fw": "tab:purple", "fw_lcb": "tab:brown"}
+                   "fw": "tab:purple", "fw_lcb": "tab:brown", "local": "tab:pink", "local_lcb": "tab:cyan"}
 
 
 def _style(system: str) -> tuple[str, str]:
@@ -83,6 +91,10 @@ def _style(system: str) -> tuple[str, str]:
         return "k", "--"
     if system == "mlp":
         return "tab:gray", "-"
+    if system == "error_bound":
+        return "tab:olive", "--"
+    if system.endswith("_err"):
+        return _VARIANT_COLORS.get(system.removesuffix("_err").removeprefix("next_step_"), "tab:olive"), "--"
     name = system.removesuffix("_guard")
     kind, _, variant = name.partition("_")  # "long_range_x" -> ("long", "range_x")
     if kind == "long":

@@ -27,6 +27,7 @@ from supervisor.localization.components import segment_planes
 from supervisor.localization.features import DescriptorMatcher, FeatureExtractor, Roi, guided_matches
 from supervisor.localization.model import TargetModel
 from supervisor.localization.settings import LocalizerSettings
+from supervisor.localization.uncertainty import pose_sd_at_point
 
 _PNP_FLAGS = {
     "usac_magsac": cv2.USAC_MAGSAC,
@@ -110,6 +111,10 @@ class LocalizationResult:
     matches: tuple[np.ndarray, np.ndarray] | None = None
     n_guided: int = 0  # matches found by projection for the guided polish (0 when off or too few)
     refine_status: str = ""  # refine: evolution -> how the evolution ended (e.g. "budget": time ran out)
+    # 1-sigma pose spread from the inliers' reprojection residuals and geometry (uncertainty.py):
+    # translation at the model points' centroid (m) and rotation (rad); nan when not localized
+    sd_t: float = math.nan
+    sd_r: float = math.nan
 
     @property
     def ok(self) -> bool:
@@ -198,11 +203,11 @@ class Localizer:
         refine_status = ""
 
         def done(status: Status, T: np.ndarray | None, n_in: int, err: float, why: str = "",
-                 n_guided: int = 0) -> LocalizationResult:
+                 n_guided: int = 0, sd: tuple[float, float] = (math.nan, math.nan)) -> LocalizationResult:
             timings.setdefault("pnp", 0.0)
             timings["total"] = time.perf_counter() - t0
             return LocalizationResult(status, T, n_in, n_matches, int(len(kp)), err, timings, roi, why,
-                                      (img, np.asarray(ti)), n_guided, refine_status)
+                                      (img, np.asarray(ti)), n_guided, refine_status, *sd)
 
         if n_matches < max(4, self.settings.min_inliers):
             return done(Status.NO_MATCHES, None, 0, math.nan, f"{n_matches} matches")
@@ -241,7 +246,8 @@ class Localizer:
         depth = obj[idx] @ T[2, :3] + T[2, 3]
         if np.median(depth) <= 0:
             return done(Status.PNP_FAILED, None, n_in, err, "pose puts the target behind the camera")
-        return done(Status.OK, T, n_in, err, n_guided=n_guided)
+        sd = pose_sd_at_point(obj[idx], img[idx], self._K, self._dist, rvec, tvec, self.model.centroid)
+        return done(Status.OK, T, n_in, err, n_guided=n_guided, sd=sd)
 
     def _guided_polish(self, kp: np.ndarray, knn: tuple[np.ndarray, np.ndarray], rvec: np.ndarray,
                        tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

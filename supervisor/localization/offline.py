@@ -33,7 +33,7 @@ from supervisor.localization.settings import LocalizerSettings
 
 CSV_COLUMNS = ["frame", "position", "theta_deg", "x_mm", "n_inliers", "n_matches", "t_err_mm", "r_err_deg",
                "reproj_px", "status", "latency_ms", "clahe_ms", "sift_ms", "match_ms", "pnp_ms", "roi",
-               "drift_mm", "drift_deg", "iou8"]
+               "drift_mm", "drift_deg", "iou8", "sd_mm", "sd_deg"]
 
 
 @dataclass(frozen=True)
@@ -59,6 +59,10 @@ class FrameArtifact:
     drift_r: float = math.nan  # rad
     # Paper 2's metric: mean IoU of each model component's projected 8-corner box, estimated vs true pose.
     iou8: float = math.nan
+    # Pose uncertainty (localization/uncertainty.py): 1-sigma translation at the model points' centroid
+    # and rotation, from the inliers' residuals and geometry (nan if not localized).
+    sd_t: float = math.nan  # m
+    sd_r: float = math.nan  # rad
 
     def row(self) -> list[object]:
         ms = lambda k: f"{self.timings.get(k, float('nan')) * 1000:.2f}"  # noqa: E731
@@ -66,7 +70,8 @@ class FrameArtifact:
                 self.n_inliers, self.n_matches, f"{self.t_err * 1000:.4f}", f"{math.degrees(self.r_err):.4f}",
                 f"{self.reproj_px:.3f}", self.status, f"{self.latency * 1000:.2f}", ms("clahe"), ms("sift"),
                 ms("match"), ms("pnp"), "" if self.roi is None else "x".join(map(str, self.roi)),
-                f"{self.drift_t * 1000:.4f}", f"{math.degrees(self.drift_r):.4f}", f"{self.iou8:.4f}"]
+                f"{self.drift_t * 1000:.4f}", f"{math.degrees(self.drift_r):.4f}", f"{self.iou8:.4f}",
+                f"{self.sd_t * 1000:.5f}", f"{math.degrees(self.sd_r):.5f}"]
 
 
 def model_from_dataset(ds: Dataset, settings: LocalizerSettings) -> TargetModel:
@@ -125,7 +130,7 @@ def localize_dataset(ds: Dataset, model: TargetModel, settings: LocalizerSetting
                                  translation_from_start(T_start, T_base_cam), res.n_inliers, res.n_matches,
                                  t_err, r_err, res.reprojection_error_px, res.status.name,
                                  res.timings.get("total", float("nan")), dict(res.timings), res.roi,
-                                 drift_t, drift_r, iou8))
+                                 drift_t, drift_r, iou8, res.sd_t, res.sd_r))
         if progress:
             progress(k + 1, len(ds.frames))
     return out

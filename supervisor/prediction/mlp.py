@@ -95,7 +95,7 @@ class MLPPredictor:
         self.samples = _Samples()
         self.last = None
 
-    def update(self, xs: np.ndarray, ns: np.ndarray) -> Prediction:
+    def update(self, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> Prediction:
         self.samples.add(xs, ns)
         self.last = self.predict_from(np.array(self.samples.xs), np.array(self.samples.ns))
         return self.last

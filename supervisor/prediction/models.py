@@ -25,6 +25,13 @@ fit. Variants (selectable by name per stage):
   such boundaries late). Falls back to ``logfit`` when four parameters are not
   determined (fewer than 5 positions, or a singular fit).
 
+- ``local`` / ``local_lcb``: the observed local decay rate. A straight line in log(n_i + 1)
+  through the last `LOCAL_POSITIONS` sampling positions only (the exponential-tail model,
+  refitted on a sliding window), read like the tail fallback. A log-concave decay (a plateau,
+  then a cliff whose e-fold length keeps shrinking) is predicted late by any one curve fitted to
+  the whole history; the recent slope is the steepest seen so far, and the next-step rule only
+  needs it one step ahead.
+
 All but ``paper`` share two more rules. **The observation guard**: if the frames
 at the furthest position already average <= n_t, theta_p = x_now whatever the
 curve says (docs/method.md's "already below n_t at the current angle", applied to the
@@ -54,7 +61,8 @@ from supervisor.prediction.emg import (Bounds, FitResult, boundary, emg, emg_jac
                                        log_emg, log_emg_gradient, peak_location, sample_problem, solve_lsq)
 
 Z_LCB = 1.645
-VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb", "fw", "fw_lcb")
+VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb", "fw", "fw_lcb", "local", "local_lcb")
+LOCAL_POSITIONS = 4  # sampling positions in the window of the local-rate variants
 _GRID = 121  # scan points for the first crossing of a confidence band
 GUARD_TOL = 0.1  # fit units (deg, mm): frames this close to the furthest one count as "here" (pose jitter)
 
@@ -222,6 +230,8 @@ def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bo
     if variant != "paper" and guard and sample_problem(x, n) is None:
         last = x >= x.max() - GUARD_TOL
         obs = (float(x.max()), float(np.mean(n[last])))
+    if variant.startswith("local"):
+        return _fit_local(variant, x, n, z, obs, t0)
     if variant.startswith("fw") and sample_problem(x, n) is None:
         fw = fit_free_width(x, n, time_budget_s=time_budget_s)
         if fw.ok:
@@ -236,4 +246,29 @@ def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bo
     params = tail.emg_params()
     res = FitResult(True, params, None, f"ok: exponential tail (EMG {fit.reason})", fit.nfev,
                     float(np.sqrt(np.mean((emg(x, *params) - n) ** 2))), time.perf_counter() - t0, len(x))
+    return ModelFit(variant, res, z, tail, obs)
+
+
+def last_positions(x: np.ndarray, k: int) -> np.ndarray:
+    """Mask of the samples at the last `k` sampling positions (samples within GUARD_TOL of each other
+    belong to one position)."""
+    xs = np.sort(np.unique(x))
+    starts = xs[np.concatenate([[True], np.diff(xs) > GUARD_TOL])]  # first x of each position
+    return x >= starts[max(0, len(starts) - k)] - 1e-12
+
+
+def _fit_local(variant: str, x: np.ndarray, n: np.ndarray, z: float, obs: tuple[float, float] | None,
+               t0: float) -> ModelFit:
+    """The local-rate variants: the exponential tail fitted on the last LOCAL_POSITIONS positions."""
+    bad = sample_problem(x, n)
+    if bad is not None:
+        return ModelFit(variant, FitResult(False, None, None, bad, 0, math.nan, time.perf_counter() - t0, len(x)), z)
+    m = last_positions(x, LOCAL_POSITIONS)
+    tail = fit_tail(x[m], n[m])
+    if isinstance(tail, str):
+        return ModelFit(variant, FitResult(False, None, None, f"local rate: {tail}", 0, math.nan,
+                                           time.perf_counter() - t0, len(x)), z, observed=obs)
+    params = tail.emg_params()
+    res = FitResult(True, params, None, f"ok: local rate over the last {LOCAL_POSITIONS} positions", 0,
+                    float(np.sqrt(np.mean((emg(x[m], *params) - n[m]) ** 2))), time.perf_counter() - t0, int(m.sum()))
     return ModelFit(variant, res, z, tail, obs)

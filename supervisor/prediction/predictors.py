@@ -12,6 +12,9 @@ from the stage. A predictor never raises for bad data: it returns
   if theta_p > theta_i + theta_b.
 - `StaticEnvelope`: a fixed boundary (the baseline).
 - `MLPPredictor` (mlp.py): the paper's neural-network baseline, next-step rule.
+- `ErrorAwarePredictor`: any of the above plus the error-aware boundary (errorbound.py): it also
+  stops where the modelled pose uncertainty (kappa sigmas) reaches the tolerance. It needs the
+  per-frame uncertainty: `update(xs, ns, err=...)`; the others accept and ignore `err`.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import numpy as np
 
 from supervisor.prediction.base import Prediction, _Samples
 from supervisor.prediction.emg import ANGLE, Axis
+from supervisor.prediction.errorbound import ERR_WINDOW, Z_ERR, ErrorTrend, crossing, log_margin, position_log_sd
 from supervisor.prediction.mlp import MLPPredictor
 from supervisor.prediction.models import VARIANTS, ModelFit, fit_variant
 
@@ -73,7 +77,7 @@ class _FittingPredictor:
 class NextStepPredictor(_FittingPredictor):
     kind = "next_step"
 
-    def update(self, xs: np.ndarray, ns: np.ndarray) -> Prediction:
+    def update(self, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> Prediction:
         self.samples.add(xs, ns)
         self.last = self._predict(self._fit())
         return self.last
@@ -94,7 +98,7 @@ class LongRangePredictor(_FittingPredictor):
         super().reset()
         self._fixed = None
 
-    def update(self, xs: np.ndarray, ns: np.ndarray) -> Prediction:
+    def update(self, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> Prediction:
         self.samples.add(xs, ns)
         x_now = self.samples.x_now
         if self._fixed is None:
@@ -127,11 +131,75 @@ class StaticEnvelope:
     def reset(self) -> None:
         self.samples = _Samples()
 
-    def update(self, xs: np.ndarray, ns: np.ndarray) -> Prediction:
+    def update(self, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> Prediction:
         self.samples.add(xs, ns)
         x_now = self.samples.x_now
         self.last = Prediction(True, self.limit, self.limit > x_now + self.step - 1e-12, "static envelope", x_now)
         return self.last
+
+
+class ErrorAwarePredictor:
+    """An n_i predictor plus the error-aware boundary: the next step is allowed only if both allow it.
+
+    `err` per update: the step's per-frame pose uncertainty in SI, shape (N,) = sd_t (m) or (N, 2) =
+    (sd_t m, sd_r rad) (LocalizationResult.sd_t / sd_r; nan for frames that did not localize). The
+    boundary is the earlier of the base's and where kappa * the modelled sd's upper bound reaches
+    the tolerance (tol_t, and tol_r when sd_r is given). An update without `err` is "no valid
+    model": the bound cannot be checked, so no new motion.
+    """
+
+    kind = "error_aware"
+
+    def __init__(self, base, tol_t: float, tol_r: float, kappa: float, step: float,
+                 x_max: float = math.radians(45.0), window: int = ERR_WINDOW, z: float = Z_ERR) -> None:
+        for name, v in (("tol_t", tol_t), ("tol_r", tol_r), ("kappa", kappa), ("step", step)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v}")
+        self.base, self.tol_t, self.tol_r, self.kappa = base, float(tol_t), float(tol_r), float(kappa)
+        self.step, self.x_max, self.window, self.z = float(step), float(x_max), int(window), float(z)
+        self.reset()
+
+    def reset(self) -> None:
+        self.base.reset()
+        self._x: list[float] = []
+        self._yt: list[float] = []
+        self._yr: list[float] = []
+        self.last: Prediction | None = None
+        self.error_boundary = math.nan  # SI, where the error bound alone would stop (nan: not evaluated)
+
+    def update(self, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> Prediction:
+        p = self.base.update(xs, ns)
+        if err is None:
+            self.last = Prediction(False, math.nan, False, "no valid model: no pose uncertainty given (err)",
+                                   p.x_now, p.fit)
+            return self.last
+        e = np.asarray(err, float)
+        if e.ndim == 1:
+            e = e[:, None]
+        if e.shape[0] != np.asarray(xs).size:
+            raise ValueError(f"err has {e.shape[0]} rows for {np.asarray(xs).size} frames")
+        self._x.append(float(np.mean(xs)))
+        self._yt.append(position_log_sd(e[:, 0]))
+        self._yr.append(position_log_sd(e[:, 1]) if e.shape[1] > 1 else math.nan)
+        trends = self.trends()
+        self.error_boundary = crossing(trends, self.kappa, p.x_now, self.x_max, self.z)
+        if not p.valid:
+            self.last = p
+            return p
+        ok = log_margin(trends, p.x_now + self.step, self.kappa, self.z) < 0
+        b = min(p.boundary, self.error_boundary)
+        self.last = Prediction(True, b, bool(ok and p.allow_next is not False),
+                               f"{p.reason}; error bound {math.degrees(self.error_boundary):.2f}", p.x_now, p.fit,
+                               p.params, p.scale)
+        return self.last
+
+    def trends(self) -> list[tuple[ErrorTrend, float]]:
+        """The fitted uncertainty trends with their tolerances (rotation only when it was given)."""
+        x = np.array(self._x)
+        out = [(ErrorTrend.fit(x, np.array(self._yt), self.window), self.tol_t)]
+        if not all(math.isnan(v) for v in self._yr):
+            out.append((ErrorTrend.fit(x, np.array(self._yr), self.window), self.tol_r))
+        return out
 
 
 PREDICTORS = ("next_step", "long_range", "static", "mlp")

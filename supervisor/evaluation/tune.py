@@ -1,0 +1,236 @@
+"""`supervisor tune`: a stage's operating point from the tolerance, by leave-one-scene-out cross-validation.
+
+The paper picks n_t by hand from recorded data, and the inlier count at which a pose fails
+depends on the scene. Here the operating point of a stage (model variant, n_t, the consistency
+guard's limits as a fraction of the tolerance, and optionally the error-aware boundary's kappa)
+is chosen for one tolerance on a benchmark suite's arcs, and its generalisation is measured:
+
+- for every scene S: choose on the arcs of all other scenes the operating point with the largest
+  mean SPL among those with no incursion (ties: the one whose closest arc stays furthest from its
+  boundary, then the first in a conservative order), then replay it on S's arcs;
+- report the cross-validated incursion rate and mean SPL over all held-out arcs (static's
+  envelope cross-validated the same way, for comparison);
+- finally choose on all scenes and write the tuned stage as YAML (mm/deg, like the config).
+
+Offline replay runs at the recording's step (2.25 deg), the live stage at its own `step_deg`.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from supervisor.config import Config
+from supervisor.errors import ConfigError, DatasetError
+from supervisor.evaluation.experiments import N_T, TOLERANCES, DatasetResult, evaluate_suite
+from supervisor.localization.offline import write_atomic
+from supervisor.paths import DEFAULT_CONFIG
+from supervisor.prediction.errorbound import KAPPAS
+from supervisor.prediction.models import VARIANTS
+
+GUARD_FRACTIONS = (0.25, 0.5, 0.75, 1.0, 0.0)  # of the tolerance; 0 = guard off (conservative first)
+SLACKS = tuple(math.radians(d) for d in (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0))  # robust choice: required margin
+_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class OperatingPoint:
+    variant: str
+    n_t: int
+    guard: float  # fraction of the tolerance (0 = off)
+    kappa: float | None  # error-aware boundary (None = off)
+
+    def describe(self) -> str:
+        g = "off" if self.guard == 0 else f"{self.guard:g} x tol"
+        k = "" if self.kappa is None else f", kappa {self.kappa:g}"
+        return f"{self.variant}, n_t {self.n_t}, guard {g}{k}"
+
+
+class Grid:
+    """Every candidate operating point and its stop on every arc (rows: points, columns: arcs)."""
+
+    def __init__(self, arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tol: str,
+                 hard_limit: float, error_aware: bool) -> None:
+        self.arcs = arcs
+        self.actual = np.array([r.actual[tol] for r in arcs])
+        self.x_end = np.array([min(r.x_max, hard_limit) for r in arcs])
+        kappas: tuple[float | None, ...] = (*sorted(KAPPAS, reverse=True), None) if error_aware else (None,)
+        points, rows = [], []
+        guard = {g: np.array([r.guard_stop_at(g, tol) for r in arcs]) for g in GUARD_FRACTIONS}
+        err = {k: np.array([r.error_stop(tol, k) if k is not None else math.inf for r in arcs]) for k in kappas}
+        for v in variants:
+            system = predictor if v == "paper" else f"{predictor}_{v}"
+            base = np.array([r.stops[system] for r in arcs]).T  # (n_t, arcs)
+            for i in range(len(N_T) - 1, -1, -1):  # high n_t (conservative) first
+                for g in GUARD_FRACTIONS:
+                    for k in kappas:
+                        points.append(OperatingPoint(v, N_T[i], g, k))
+                        rows.append(np.minimum(np.minimum(base[i], guard[g]), err[k]))
+        self.points = points
+        self.stops = np.minimum(np.array(rows), hard_limit)
+
+    def choose(self, cols: np.ndarray, slack: float = 0.0) -> int | None:
+        """Index of the best point on the arcs `cols` that stops every arc at least `slack` (rad) before its
+        boundary (arcs whose boundary is the arc's end only need not pass it); None if no point does."""
+        if len(cols) == 0:
+            return None
+        s, a = self.stops[:, cols], self.actual[cols]
+        open_end = a >= self.x_end[cols] - _EPS  # no boundary inside the arc: only passing the end incurs
+        need = np.where(open_end, a, a - slack)
+        safe = ~np.any(s > need + _EPS, axis=1)
+        if not safe.any():
+            return None
+        mean_spl = np.mean(np.minimum(s, a), axis=1)
+        margin = np.min(np.where(open_end, np.inf, a - s), axis=1)
+        score = np.where(safe, mean_spl, -np.inf)
+        best = np.flatnonzero(score >= score.max() - 1e-12)
+        return int(best[np.argmax(margin[best])])  # argmax: the first of equal margin (conservative order)
+
+    def choose_robust(self, cols: np.ndarray, scene_of: np.ndarray) -> tuple[int | None, float]:
+        """(point, slack): the smallest slack in SLACKS whose choice is safe on every scene of `cols` when
+        that scene is left out of the choice (an inner leave-one-scene-out on `cols` only), then the
+        point chosen with it on all of `cols`. The largest slack when none is inner-safe, or when `cols`
+        hold a single scene (nothing to leave out)."""
+        scenes = sorted(set(scene_of[cols]))
+        for sl in SLACKS if len(scenes) > 1 else ():
+            ok = True
+            for sc in scenes:
+                test, train = cols[scene_of[cols] == sc], cols[scene_of[cols] != sc]
+                i = self.choose(train, sl)
+                if i is None or np.any(self.stops[i, test] > self.actual[test] + _EPS):
+                    ok = False
+                    break
+            if ok:
+                return self.choose(cols, sl), sl
+        return self.choose(cols, SLACKS[-1]), SLACKS[-1]
+
+
+def _static_envelope(actual: np.ndarray) -> float:
+    """Static's best zero-incursion envelope on some arcs: the earliest boundary among them."""
+    return float(np.min(actual))
+
+
+def tune(cfg: Config, bench_dir: str | Path, stage: str, tolerance: str, out: str | Path, *,
+         cache: str | Path | None = None, variants: tuple[str, ...] | None = None, error_aware: bool = False,
+         jobs: int = 2, progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
+    """Leave-one-scene-out tuning of `stage` for `tolerance`; writes OUT/tune.json and OUT/<stage>.yaml."""
+    if tolerance not in TOLERANCES:
+        raise ConfigError(Path(cfg.file), "tolerance", f"expected one of {', '.join(TOLERANCES)}, got {tolerance!r}")
+    st = cfg.stage(stage)
+    if st.predictor not in ("next_step", "long_range"):
+        raise ConfigError(Path(cfg.file), f"stages.{stage}.predictor",
+                          f"tuning needs a fitting predictor (next_step or long_range), got {st.predictor!r}")
+    variants = variants or (st.variant,)
+    for v in variants:
+        if v not in VARIANTS:
+            raise ConfigError(Path(cfg.file), "variants", f"unknown model variant {v!r}; expected one of {VARIANTS}")
+    out = Path(out)
+    results = evaluate_suite(cfg, bench_dir, Path(cache) if cache else out / "cache", jobs, progress)
+    arcs = [r for r in results if r.kind == "arc"]
+    report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress)
+    report["stage"] = stage
+    final = report.pop("_final")
+    out.mkdir(parents=True, exist_ok=True)
+    if final is not None:
+        text = stage_yaml(cfg, stage, final, tolerance, report)
+        write_atomic(out / f"{stage}.yaml", text.encode())
+        report["stage_yaml"] = str(out / f"{stage}.yaml")
+    write_atomic(out / "tune.json", json.dumps(report, indent=1).encode())
+    return report
+
+
+def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tolerance: str,
+                   hard_limit: float, error_aware: bool = False, progress=lambda m: None,
+                   robust: bool = True) -> dict[str, Any]:
+    """Leave-one-scene-out over `arcs` (evaluated datasets): per fold the choice and its held-out stops,
+    the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs.
+
+    `robust` (default): each choice also picks its safety slack by an inner leave-one-scene-out on
+    its own training scenes (`Grid.choose_robust`); otherwise the plain best zero-incursion point."""
+    scenes = sorted({r.scene or r.name for r in arcs})
+    if len(scenes) < 2:
+        raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
+    grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware)
+    scene_of = np.array([r.scene or r.name for r in arcs])
+    deg = math.degrees(1.0)
+    folds, held_stops, static_stops = [], np.full(len(arcs), np.nan), np.full(len(arcs), np.nan)
+    for sc in scenes:
+        test, train = np.flatnonzero(scene_of == sc), np.flatnonzero(scene_of != sc)
+        i, sl = grid.choose_robust(train, scene_of) if robust else (grid.choose(train), 0.0)
+        # no safe point on the training scenes: the stage would not be allowed to move at all
+        held_stops[test] = 0.0 if i is None else grid.stops[i, test]
+        env = _static_envelope(grid.actual[train])
+        static_stops[test] = env
+        folds.append({"held_out": sc, "chosen": None if i is None else grid.points[i].describe(),
+                      "arcs": [{"name": arcs[j].name, "stop_deg": held_stops[j] * deg,
+                                "actual_deg": grid.actual[j] * deg,
+                                "incursion": bool(held_stops[j] > grid.actual[j] + _EPS)} for j in test],
+                      "slack_deg": sl * deg, "static_envelope_deg": env * deg})
+        progress(f"  held out {sc:<24} chose {folds[-1]['chosen']}: "
+                 + ", ".join(f"{a['stop_deg']:.1f}/{a['actual_deg']:.1f}" for a in folds[-1]["arcs"]))
+
+    def summary(stops: np.ndarray) -> dict[str, float]:
+        return {"incursion_rate": float(np.mean(stops > grid.actual + _EPS)),
+                "incursions": int(np.sum(stops > grid.actual + _EPS)),
+                "mean_spl_deg": float(np.mean(np.minimum(stops, grid.actual))) * deg}
+
+    cv, cv_static = summary(held_stops), summary(static_stops)
+    every = np.arange(len(arcs))
+    final, final_slack = grid.choose_robust(every, scene_of) if robust else (grid.choose(every), 0.0)
+    return {
+        "tolerance": tolerance, "predictor": predictor, "variants": list(variants), "error_aware": error_aware,
+        "arcs": len(arcs), "scenes": scenes, "folds": folds,
+        "cross_validated": cv, "cross_validated_static": cv_static,
+        "cv_improvement_over_static": (cv["mean_spl_deg"] / cv_static["mean_spl_deg"] - 1.0)
+        if cv_static["mean_spl_deg"] > 0 else None,
+        "chosen_on_all_scenes": None if final is None else grid.points[final].describe(),
+        "slack_deg": final_slack * deg, "robust": robust,
+        "in_sample": None if final is None else summary(grid.stops[final]),
+        "_final": None if final is None else grid.points[final],
+    }
+
+
+def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, report: dict[str, Any]) -> str:
+    """The stage's YAML mapping (as in the config file) with the tuned keys replaced."""
+    raw = yaml.safe_load(Path(cfg.file or DEFAULT_CONFIG).read_text(encoding="utf-8"))
+    node = copy.deepcopy(raw["stages"][stage])
+    tt, tr = TOLERANCES[tolerance]
+    node["variant"] = op.variant
+    node["n_t"] = op.n_t
+    node["consistency_limit_mm"] = round(op.guard * tt * 1000.0, 3)
+    node["consistency_limit_deg"] = round(op.guard * math.degrees(tr), 3)
+    doc: dict[str, Any] = {"stages": {stage: node}}
+    if op.kappa is not None:
+        # The error-aware boundary is not a stage key yet (the loop must first pass the pose uncertainty
+        # to the predictor): a top-level section, which stage loading ignores.
+        doc["error_bound"] = {stage: {"kappa": op.kappa, "tolerance_mm": tt * 1000.0,
+                                      "tolerance_deg": math.degrees(tr)}}
+    cv = report["cross_validated"]
+    head = (f"# stage {stage} tuned for {tolerance} by leave-one-scene-out cross-validation over "
+            f"{report['arcs']} arcs of {len(report['scenes'])} scenes:\n"
+            f"# cross-validated incursion rate {cv['incursion_rate']:.3f}, mean SPL {cv['mean_spl_deg']:.2f} deg\n")
+    return head + yaml.safe_dump(doc, sort_keys=False)
+
+
+def format_report(r: dict[str, Any]) -> str:
+    cv, cs = r["cross_validated"], r["cross_validated_static"]
+    imp = r["cv_improvement_over_static"]
+    lines = [f"stage {r['stage']}, tolerance {r['tolerance']}, {r['arcs']} arcs over {len(r['scenes'])} scenes "
+             f"(leave one scene out)",
+             f"  cross-validated: incursion rate {cv['incursion_rate']:.3f} ({cv['incursions']} arcs), "
+             f"mean SPL {cv['mean_spl_deg']:.2f} deg",
+             f"  static, cross-validated: incursion rate {cs['incursion_rate']:.3f} ({cs['incursions']} arcs), "
+             f"mean SPL {cs['mean_spl_deg']:.2f} deg"
+             + ("" if imp is None else f"; improvement {100 * imp:+.1f}%"),
+             f"  chosen on all scenes: {r['chosen_on_all_scenes']}"]
+    if r.get("stage_yaml"):
+        lines.append(f"  wrote {r['stage_yaml']}")
+    return "\n".join(lines)

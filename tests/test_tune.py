@@ -1,0 +1,77 @@
+"""Leave-one-scene-out tuning (supervisor tune) on hand-made evaluation results."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from supervisor.evaluation.experiments import N_T, DatasetResult
+from supervisor.evaluation.tune import cross_validate, stage_yaml
+
+D = math.radians(1.0)
+POS = [math.radians(2.25 * k) for k in range(21)]
+
+
+def _arc(scene: str, az: int, actual_deg: float, slope_deg: float, err_from: int | None = None) -> DatasetResult:
+    """An arc whose next-step stop falls linearly with n_t (steeper = needs a higher n_t to be safe) and,
+    optionally, whose pose uncertainty reaches the tolerance at kappa 1 from position `err_from`."""
+    stops = [min(45.0, actual_deg + 10.0 - slope_deg * (nt - 4)) * D for nt in N_T]
+    margin = [math.nan] * 4 + [(0.5 if err_from is not None and k >= err_from else -3.0) for k in range(4, 21)]
+    return DatasetResult(f"arc_{scene}_az{az:03d}", "arc", math.radians(45.0),
+                         {"2mm_3deg": actual_deg * D, "4mm_10deg": actual_deg * D},
+                         {"next_step_logfit_lcb": stops}, {"2mm_3deg": math.inf, "4mm_10deg": math.inf}, POS,
+                         [100.0] * 21, scene, {"2mm_3deg": margin, "4mm_10deg": margin},
+                         [(0.0, 0.0)] * 21)
+
+
+def test_a_scene_that_needs_a_higher_threshold_incurs_only_when_it_is_held_out():
+    arcs = [_arc("a", 0, 20, 0.5), _arc("a", 90, 25, 0.5), _arc("b", 0, 30, 0.5), _arc("c", 0, 22, 0.2)]
+    r = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    assert r["scenes"] == ["a", "b", "c"]
+    by_scene = {f["held_out"]: f for f in r["folds"]}
+    # c needs n_t >= 54 (10 / 0.2 + 4); a and b only n_t >= 24: held out, c is tuned too low and incurs
+    assert [a["incursion"] for a in by_scene["c"]["arcs"]] == [True]
+    assert not any(a["incursion"] for f in ("a", "b") for a in by_scene[f]["arcs"])
+    assert r["cross_validated"]["incursions"] == 1 and r["cross_validated"]["incursion_rate"] == 0.25
+    assert r["in_sample"]["incursions"] == 0  # chosen on all scenes it is safe on all of them
+    assert r["_final"].n_t == 54 and r["_final"].variant == "logfit_lcb"
+    # static, cross-validated: the earliest training boundary; held out a, it runs to c's 22 deg past a's 20
+    assert r["cross_validated_static"]["incursions"] == 1
+
+
+def test_the_robust_choice_takes_the_slack_its_own_inner_folds_need():
+    # safe n_t: a, d 24; b 29; c 35.25. Held out c, the plain choice on a, b, d (n_t 29) incurs on c;
+    # the robust one finds, leaving b out of a and d, that 3 deg of slack are needed, and picks n_t 37.
+    arcs = [_arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.4), _arc("c", 0, 22, 0.32), _arc("d", 0, 25, 0.5)]
+    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    robust = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0))
+    held_c = {f["held_out"]: f for f in robust["folds"]}["c"]
+    assert plain["cross_validated"]["incursions"] >= 1
+    assert robust["cross_validated"]["incursions"] == 0
+    assert held_c["slack_deg"] == pytest.approx(3.0) and held_c["chosen"].startswith("logfit_lcb, n_t 37")
+    assert robust["cross_validated"]["mean_spl_deg"] < plain["cross_validated"]["mean_spl_deg"] + 1e-9
+
+
+def test_the_error_bound_can_make_a_low_threshold_safe_and_the_stage_yaml_loads(tmp_path):
+    from supervisor.config import load_config
+    from supervisor.stages import load_stages
+
+    # the steep scene's pose uncertainty reaches the tolerance at position 8 (18 deg, before its 22 deg)
+    arcs = [_arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.5), _arc("c", 0, 22, 0.2, err_from=8)]
+    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    aware = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), error_aware=True,
+                           robust=False)
+    assert aware["in_sample"]["mean_spl_deg"] > plain["in_sample"]["mean_spl_deg"]
+    assert aware["_final"].kappa is not None and aware["_final"].n_t < plain["_final"].n_t
+    cfg = load_config(None)
+    text = stage_yaml(cfg, "explore", aware["_final"], "4mm_10deg", {**aware, "stage": "explore"})
+    p = tmp_path / "explore.yaml"
+    p.write_text(text)
+    st = load_stages(p)["explore"]
+    assert st.n_t == aware["_final"].n_t and st.variant == "logfit_lcb"
+    assert "error_bound" in text and "cross-validated incursion rate" in text
+    with pytest.raises(Exception, match="2 scenes"):
+        cross_validate(arcs[:1], "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0))
+    assert np.isfinite(plain["cross_validated"]["mean_spl_deg"])
