@@ -195,3 +195,37 @@ def test_hooks_see_the_run_and_a_failing_hook_never_disturbs_it():
     assert obs.states > 1000 and obs.frames == len(rec.samples) and obs.results == len(rec.samples)
     errors = rig.events.of_kind("hook_error")
     assert len(errors) == 1 and errors[0]["hook"] == "observer.frame"
+
+
+class _SlowPredictor:
+    """A predictor whose fit takes 4 ms (a 1 ms tick cannot afford to wait for it)."""
+
+    kind = "slow"
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def update(self, xs, ns):
+        time.sleep(0.004)
+        return self.inner.update(xs, ns)
+
+    def reset(self):
+        self.inner.reset()
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_on_the_real_clock_a_slow_fit_runs_off_the_tick(threaded):
+    from supervisor.runtime.loop import ThreadFits
+
+    clock = MonotonicClock()
+    st = stage(hard_limit=4.5 * DEG, sampling="stop_and_go", overrun_budget=3)
+    pacer = TickPacer(clock, 0.001, st.overrun_budget)
+    rig = build_loop(st, clock=clock, pacer=pacer, camera=PlainCamera(clock))
+    rig.loop.predictor = _SlowPredictor(rig.loop.predictor)
+    if threaded:
+        rig.loop.fits = ThreadFits(rig.loop.predictor)
+    rec = rig.loop.run(max_time=30.0)
+    if threaded:  # the fits ran beside the tick: the arc ends normally
+        assert rec.halt_reason == "end_of_path", (rec.halt_reason, _faults(rig))
+    else:  # inside the tick, each 4 ms fit is an overrun of several deadlines
+        assert pacer.stats.overruns >= 1

@@ -36,7 +36,7 @@ from supervisor.motion.plan import MotionRejected, PathCheck, PathFollower, chec
 from supervisor.prediction import make_predictor
 from supervisor.runtime.capture import CaptureThread, InlineFrames
 from supervisor.runtime.events import EventLog
-from supervisor.runtime.loop import RunRecord, SupervisorLoop
+from supervisor.runtime.loop import RunRecord, SupervisorLoop, ThreadFits
 from supervisor.runtime.pacer import SimPacer, TickPacer
 from supervisor.runtime.protocols import CameraDriver, RobotDriver
 from supervisor.runtime.worker import InlineWorker, ProcessWorker, ThreadWorker
@@ -339,7 +339,8 @@ class Supervisor:
                                   T_cam_target_model=self.model.T_cam0_target, clock=d.clock, events=self.events,
                                   s_end=plan.s_end, frame_period=cfg.camera.frame_period_s,
                                   reference_point=self.model.centroid, pacer=pacer, heartbeat=heartbeat, on_brake=on_brake,
-                                  observer=observer)
+                                  observer=observer,
+                                  fits=ThreadFits(predictor) if d.realtime else None)
             with self._lock:
                 self._loop = loop
             rt = None

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import enum
 import math
+import threading
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -130,6 +131,64 @@ class RunRecord:
     fits: list[dict[str, Any]] = field(default_factory=list)  # per predictor update
 
 
+class InlineFits:
+    """The predictor's fits where the loop asks for them (simulated time: deterministic)."""
+
+    def __init__(self, predictor) -> None:
+        self.predictor = predictor
+        self._done: dict[int, tuple[object, BaseException | None]] = {}
+
+    def submit(self, step: int, xs: np.ndarray, ns: np.ndarray) -> None:
+        try:
+            self._done[step] = (self.predictor.update(xs, ns), None)
+        except Exception as exc:  # noqa: BLE001 - handed to the loop, which treats it as no valid model
+            self._done[step] = (None, exc)
+
+    def take(self, step: int):
+        """(prediction, exception) once the fit for `step` is done, else None."""
+        return self._done.pop(step, None)
+
+    def close(self) -> None:
+        pass
+
+
+class ThreadFits(InlineFits):
+    """The predictor's fits on a thread of their own (real clock): a 1-3 ms curve fit must not hold up a
+    1 ms tick. Fits run in step order; the loop applies each when it is done."""
+
+    def __init__(self, predictor) -> None:
+        super().__init__(predictor)
+        import queue as _queue
+
+        self._lock = threading.Lock()
+        self._jobs: _queue.Queue = _queue.Queue()
+        self._thread = threading.Thread(target=self._run, name="predictor", daemon=True)
+        self._thread.start()
+
+    def submit(self, step: int, xs: np.ndarray, ns: np.ndarray) -> None:
+        self._jobs.put((step, xs, ns))
+
+    def _run(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            step, xs, ns = job
+            try:
+                out = (self.predictor.update(xs, ns), None)
+            except Exception as exc:  # noqa: BLE001
+                out = (None, exc)
+            with self._lock:
+                self._done[step] = out
+
+    def take(self, step: int):
+        with self._lock:
+            return self._done.pop(step, None)
+
+    def close(self) -> None:
+        self._jobs.put(None)
+
+
 class _RobotLost(Exception):
     """The robot's own state or command failed: it may no longer take commands (driver stop)."""
 
@@ -141,7 +200,7 @@ class SupervisorLoop:
                  stage: StageConfig, follower: PathFollower, kin: Kinematics, T_base_cam_model: np.ndarray,
                  T_cam_target_model: np.ndarray, clock: Clock, events: EventLog, s_end: float,
                  frame_period: float, reference_point: np.ndarray | None = None, pacer=None,
-                 heartbeat=None, on_brake=None, observer=None) -> None:
+                 heartbeat=None, on_brake=None, observer=None, fits=None) -> None:
         self.robot = robot
         # Called with the clock time from every tick whose robot state was fresh and trusted: the daemon's
         # systemd watchdog and the CAN heartbeat hang on it, so a hung or failing loop stops them.
@@ -157,6 +216,8 @@ class SupervisorLoop:
         self.worker = worker
         self.pacer = pacer if pacer is not None else SimPacer()
         self.predictor = predictor
+        self.fits = fits  # where the predictor's fits run (default: inline, set in run())
+        self._fit_requested: dict[int, float] = {}  # step -> when its fit was asked for
         self.stage = stage
         self.follower = follower
         self.kin = kin
@@ -331,15 +392,27 @@ class SupervisorLoop:
         for note in self.worker.take_notes():
             self.events.emit(note.pop("t", now), "model_refined", **note)
 
-    def _update_predictor(self, now: float, step: int) -> None:
+    def _update_predictor(self, now: float, step: int) -> bool:
+        """Ask for the step's fit (once) and apply it when it is done; True once applied."""
+        if self.fits is None:
+            self.fits = InlineFits(self.predictor)
         samples = self._step_samples.get(step, [])
         xs = np.array([s.theta for s in samples], float)
         ns = np.array([s.n_inliers for s in samples], float)
+        if step not in self._fit_requested:
+            self._fit_requested[step] = now
+            self.fits.submit(step, xs, ns)
+        done = self.fits.take(step)
+        if done is None:
+            if now - self._fit_requested[step] > self.stage.localization_timeout + 1e-9:
+                self._fault(now, "prediction_timeout", f"the fit for step {step} is not done after "
+                            f"{(now - self._fit_requested[step]) * 1000:.0f} ms")
+            return False
+        del self._fit_requested[step]
         if len(xs):
             self._evidence = max(self._evidence, float(xs.max()))
-        try:
-            pred = self.predictor.update(xs, ns)
-        except Exception as exc:  # noqa: BLE001 - a predictor bug must stop the robot, not crash the loop
+        pred, exc = done
+        if exc is not None:  # a predictor bug must stop the robot, not crash the loop
             self.events.emit(now, "predictor_error", error=repr(exc))
             pred = None
         fit = getattr(pred, "fit", None)
@@ -352,6 +425,7 @@ class SupervisorLoop:
         self._set_prediction(now, pred)
         self.worker.refine(now, step)  # model refinement from the robot's motion, if the schedule says so
         self._emit_notes(now)
+        return True
 
     def _check_consistency(self, now: float, step: int, samples: list[Sample]) -> None:
         """The consistency guard: trip (latched) when the step's mean target-pose drift exceeds the limit."""
@@ -472,6 +546,8 @@ class SupervisorLoop:
                     self._robot_lost(now, "brake_failed", f"{type(exc).__name__}: {exc}")
                 else:
                     self._fault(now, "internal", f"{type(exc).__name__}: {exc}")
+        if self.fits is not None:
+            self.fits.close()
         return self.record
 
     def _tick(self, now: float, t_start: float, max_time: float) -> bool:
@@ -556,7 +632,8 @@ class SupervisorLoop:
             if self._frames_in_step >= st.frames_per_step:
                 self._phase = Phase.WAITING
         if self._phase is Phase.WAITING and self._awaiting.get(self._step, 0) == 0:
-            self._update_predictor(now, self._step)
+            if not self._update_predictor(now, self._step):
+                return  # the fit is still running (real clock): the arm waits at rest
             nxt = min(s + st.step, self.s_end)
             if nxt - s < 1e-9:
                 self._halt(now, "end_of_path")
@@ -595,9 +672,8 @@ class SupervisorLoop:
             self._closing.add(self._step)
             self._step += 1
         for k in sorted(self._closing):
-            if self._awaiting.get(k, 0) == 0:
-                self._closing.discard(k)
-                self._update_predictor(now, k)
+            if self._awaiting.get(k, 0) == 0 and self._update_predictor(now, k):
+                self._closing.discard(k)  # (a fit still running on the real clock: applied at a later tick)
         # theta_allowed (theta_p - margin, and at most one step beyond the furthest sample) is the
         # bound: the robot is steered to stop there (and the gate brakes if a revision leaves no room).
         self._target_s = min(self.s_end, self._theta_allowed)
