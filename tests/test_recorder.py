@@ -247,8 +247,8 @@ def test_bad_recording_settings_are_refused_naming_the_key(tmp_path, block, prob
         load_config(_with_recording(tmp_path, block))
 
 
-def test_the_shipped_config_records_and_a_config_without_the_section_does_not(tmp_path):
+def test_the_shipped_config_does_not_record_and_neither_does_a_config_without_the_section(tmp_path):
     cfg = load_config(None)
-    assert cfg.recording.enabled and cfg.recording.quota_bytes == 2048 * 10**6
+    assert not cfg.recording.enabled and cfg.recording.quota_bytes == 2048 * 10**6
     assert cfg.recording.state_period_s == pytest.approx(0.01)
     assert load_config(_with_recording(tmp_path, "")).recording.enabled is False

@@ -1,4 +1,4 @@
-"""The daemon records its runs: a subprocess on the default config (recording on), one gated arc through
+"""The daemon records its runs: a subprocess on the default config (recording turned on), one gated arc through
 `supervisor ctl`, then the session under `<log-dir>/sessions/` replayed by `supervisor dry-run --replay`."""
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ def _patient_config(tmp_path):
     text = DEFAULT_CONFIG.read_text()
     for old, new in (("frame_timeout_ms: 200", "frame_timeout_ms: 1000"),
                      ("localization_timeout_ms: 1000", "localization_timeout_ms: 5000"),
-                     ("pose_gap_ms: 20", "pose_gap_ms: 200\n    overrun_budget: 50")):
+                     ("pose_gap_ms: 20", "pose_gap_ms: 200\n    overrun_budget: 50"),
+                     ("  enabled: false", "  enabled: true")):  # recording is off in the shipped config
         assert old in text
         text = text.replace(old, new, 1)  # the first stage: explore
     path = tmp_path / "patient.yaml"
