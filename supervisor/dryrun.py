@@ -36,7 +36,7 @@ from supervisor.localization.model import BoxROI, TargetModel
 from supervisor.motion.paths import ArcPath, start_camera_pose
 from supervisor.runtime.builder import Drivers, Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
-from supervisor.runtime.loop import RunRecord, overshoot
+from supervisor.runtime.loop import RunRecord, executed_angles, overshoot
 from supervisor.stages import StageConfig
 
 TOLERANCES = {"2mm_3deg": (0.002, math.radians(3.0)), "4mm_10deg": (0.004, math.radians(10.0))}
@@ -143,7 +143,7 @@ def _report_run(record: RunRecord, drivers: Drivers, T0: np.ndarray, progress) -
     progress(f"  halted at {math.degrees(record.halt_s):.2f} deg ({record.halt_reason}) after "
              f"{drivers.clock.now():.1f} s {'on the clock' if drivers.realtime else 'simulated'}")
     kin = drivers.kin
-    return np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
+    return executed_angles(record, kin, T0)
 
 
 def _write_outputs(out: Path | None, summary: dict[str, Any], record: RunRecord, oracle) -> None:

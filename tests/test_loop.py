@@ -13,12 +13,11 @@ from drivers.camera.base import Camera, RawFrame
 from drivers.robot.base import Robot
 from sim.scene import load_scene
 from supervisor.config import load_config
-from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.model import BoxROI
 from supervisor.motion.paths import start_camera_pose
 from supervisor.runtime.builder import Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
-from supervisor.runtime.loop import overshoot
+from supervisor.runtime.loop import executed_angles, overshoot
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +102,7 @@ def _run(cfg, stage, *, wrap_camera=None, wrap_robot=None, latency_scale: float 
     plan = sup.plan_arc(pivot, math.radians(90.0))
     rec = sup.run(plan)
     events.close()
-    executed = np.array([viewing_angle(sup.T_base_cam_model, drivers.kin.fk(q, "camera")) for q in rec.trajectory_q])
+    executed = executed_angles(rec, drivers.kin, sup.T_base_cam_model)
     over, short = overshoot(np.asarray(rec.trajectory_t), executed, rec.allowance_history)
     return {"halt_reason": rec.halt_reason, "halt_angle_deg": math.degrees(rec.halt_s),
             "max_executed_angle_deg": math.degrees(executed.max()), "faults": [e["fault"] for e in events.of_kind("fault")],

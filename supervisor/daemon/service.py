@@ -32,12 +32,11 @@ import numpy as np
 from supervisor.config import Config, load_config
 from supervisor.daemon.notify import Notifier
 from supervisor.errors import ConfigError, SupervisorError
-from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.model import DepthROI, TargetModel
 from supervisor.runtime.builder import Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
 from supervisor.motion.plan import START_TOLERANCE
-from supervisor.runtime.loop import RunRecord, overshoot
+from supervisor.runtime.loop import RunRecord, executed_angles, overshoot
 from supervisor.can.link import CanLink  # CAN side channel (issue 12)
 
 IDLE_PERIOD = 0.02  # s: the idle loop's period (freshness checks, watchdog, queued requests)
@@ -442,7 +441,7 @@ class Daemon:
 
     def _summary(self, record: RunRecord) -> dict[str, Any]:
         kin, T0 = self.drivers.kin, self.sup.T_base_cam_model
-        executed = np.array([viewing_angle(T0, kin.fk(q, "camera")) for q in record.trajectory_q])
+        executed = executed_angles(record, kin, T0)
         over, _ = overshoot(np.asarray(record.trajectory_t), executed, record.allowance_history)
         allowed = record.s_allowed_at_brake
         return {"halt_angle_deg": math.degrees(record.halt_s), "halt_reason": record.halt_reason,

@@ -49,7 +49,7 @@ import numpy as np
 
 from supervisor.arm.state import state_problem
 from supervisor.clock import Clock
-from supervisor.errors import CameraTimeout, SupervisorError
+from supervisor.errors import CameraTimeout
 from supervisor.geometry import pose_error
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.localizer import predict_target_pose
@@ -109,6 +109,12 @@ def overshoot(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
     before = k < 0  # samples before the first allowance: bound by the first one
     k[before] = 0
     return float(np.max(s - bound[k])), float(shortfall)
+
+
+def executed_angles(record: RunRecord, kin, T_base_cam_model: np.ndarray) -> np.ndarray:
+    """The viewing angle of every executed robot state of a run (the reported joints through the
+    kinematics), the trajectory overshoot and envelope figures are measured on."""
+    return np.array([viewing_angle(T_base_cam_model, kin.fk(q, "camera")) for q in record.trajectory_q])
 
 
 @dataclass
