@@ -3,6 +3,8 @@ PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+# + the aravis extra and the Debian packages the tests need (make test installs them)
+ARAVIS_STAMP := $(VENV)/.aravis-installed
 OUT    ?= out
 
 .PHONY: setup run test bench clean aravis-deps
@@ -19,16 +21,17 @@ setup: $(STAMP)
 run: $(STAMP)
 	$(VENV)/bin/supervisor dry-run -o $(OUT)/dry-run
 
-test: $(STAMP)
+test: $(ARAVIS_STAMP)
 	$(PY) -m pytest -q
 
 # Aravis camera driver (the `aravis` extra): Debian's build deps for PyGObject and the GigE fake camera
 # (aravis-tools), then the pip wheels. Needs root for apt-get; idempotent (dpkg check, stamp file).
 APT_ARAVIS := libgirepository1.0-dev libcairo2-dev pkg-config gcc aravis-tools
-ARAVIS_STAMP := $(VENV)/.aravis-installed
+# systemd: systemd-analyze checks the shipped unit
+APT_TEST := $(APT_ARAVIS) systemd
 $(ARAVIS_STAMP): $(STAMP) pyproject.toml
-	@dpkg -s $(APT_ARAVIS) >/dev/null 2>&1 || { apt-get update -qq && \
-	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(APT_ARAVIS) >/dev/null; }
+	@dpkg -s $(APT_TEST) >/dev/null 2>&1 || { apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(APT_TEST) >/dev/null; }
 	$(PY) -m pip install --quiet -e '.[test,aravis]'
 	@touch $(ARAVIS_STAMP)
 
