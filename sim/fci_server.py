@@ -1,6 +1,7 @@
 """franky-sim as a subprocess: a simulated FR3 speaking libfranka's FCI protocol on a loopback address.
 
-`FciServer("127.0.0.N")` starts `franky-sim --hostname 127.0.0.N -s mujoco`, waits for
+`FciServer("127.0.0.N")` starts `franky-sim --hostname 127.0.0.N -s mujoco` (on SCHED_FIFO where
+permitted, as a real controller runs real-time), waits for
 its "Connect to the server" line (the server is bound and stepping from then on) and
 ends it by its own pid on `kill()`/`close()`. Tests and benchmarks give each server its
 own 127.0.0.N so they never share a simulated robot.
@@ -21,6 +22,23 @@ from supervisor.errors import DriverUnavailable
 
 READY_LINE = "Connect to the server"
 START_TIMEOUT_S = 60.0  # MuJoCo model load on a loaded 2-core machine takes ~5-10 s
+# SCHED_FIFO priority of the simulated controller: a real FCI controller is a real-time machine of its
+# own; on a shared 2-core machine an ordinary franky-sim steps its 1 kHz loop at ~0.1x real time under
+# load (measured: the robot's clock advanced 8-30 ms per 100 ms at load 6.7), then every motion lags.
+# Below the supervisor's tick thread (20), above its render process (10).
+REALTIME_PRIORITY = 15
+
+
+def _realtime_child(priority: int | None):
+    """A Popen preexec_fn that puts the child (and every thread it starts) on SCHED_FIFO, if permitted."""
+    def setup() -> None:
+        if priority is None:
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except (PermissionError, OSError):
+            pass  # unprivileged: an ordinary process (`realtime` says so)
+    return setup
 
 
 def franky_sim_executable() -> str:
@@ -38,7 +56,8 @@ def franky_sim_executable() -> str:
 class FciServer:
     """One franky-sim process bound to `host`; a context manager that kills it on exit."""
 
-    def __init__(self, host: str, *, timeout_s: float = START_TIMEOUT_S) -> None:
+    def __init__(self, host: str, *, timeout_s: float = START_TIMEOUT_S,
+                 realtime_priority: int | None = REALTIME_PRIORITY) -> None:
         self.host = host
         self._lines: list[str] = []
         self._ready = threading.Event()
@@ -46,7 +65,12 @@ class FciServer:
             [franky_sim_executable(), "--hostname", host, "-s", "mujoco"],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             text=True, bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            preexec_fn=_realtime_child(realtime_priority),  # noqa: PLW1509 - only a scheduler call
         )
+        try:
+            self.realtime = os.sched_getscheduler(self.proc.pid) == os.SCHED_FIFO
+        except OSError:
+            self.realtime = False
         self._reader = threading.Thread(target=self._read, name=f"franky-sim {host}", daemon=True)
         self._reader.start()
         t0 = time.monotonic()

@@ -35,6 +35,7 @@ or a reflex (ControlException, CommandException, ...) RobotFault, both chained.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,12 @@ from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, R
 COMMAND_MODES = ("velocity", "position", "position_velocity")
 STALE_STATE_S = 0.02  # s: a robot state older than this steers no new motion (the supervisor's gap rule)
 HOLD_MS = 24 * 3600 * 1000  # the idle hold's duration (a zero-velocity motion)
+SETTLE_TOLERANCE = 0.5e-3  # rad per joint: where a setup move ends (the arc's start accepts 1 mrad)
+# s the error must stay within SETTLE_TOLERANCE: a position window, not a speed test (franky-sim's joint 7
+# chatters at +-77 mrad/s with a 0.1 mrad amplitude when at rest)
+SETTLE_WINDOW = 0.05
+SETTLE_SPEED = 0.05  # rad/s: the settle's largest correction speed
+SETTLE_TIMEOUT = 3.0  # s
 # A dead or broken link: the robot object cannot be used again.
 _LINK_ERRORS = (franky.NetworkException, franky.ProtocolException, franky.IncompatibleVersionException)
 PANDA_HINT = (
@@ -132,6 +139,7 @@ class FrankaRobot(Robot):
         self._v_max = kin.dq_max * relative_dynamics_factor
         self.motions_sent = 0
         self.sends_withheld = 0  # targets not sent because the robot state was stale
+        self.settle_error = math.nan  # rad: the largest joint error where the last move_to settled
         self._robot: franky.Robot | None = None
         self._connect()
 
@@ -242,22 +250,63 @@ class FrankaRobot(Robot):
         return np.asarray(raw.O_T_EE.matrix) @ np.linalg.inv(np.asarray(raw.F_T_EE.matrix))
 
     def move_to(self, q: np.ndarray, speed: float = 0.2) -> None:
-        """Blocking point-to-point move to `q` with franky's own planner at `speed` x the limits.
+        """Blocking point-to-point move to `q` with franky's own planner at `speed` x the limits, then a
+        settle onto `q` within `SETTLE_TOLERANCE` per joint.
 
-        For setup moves at rest (e.g. to the start posture), never inside the supervised loop.
+        franky's `JointMotion` ends where the controller's impedance leaves the joints (franky-sim: up to
+        3 mrad off on joint 7, more than the 1 mrad at which the supervisor accepts an arc's start), so the
+        settle pulls the measured joints in with the same velocity tracking the supervised stream uses
+        (`gain` on the error, at most `SETTLE_SPEED`), each motion held for `deadman`. An arm that does
+        not settle within `SETTLE_TIMEOUT` raises RobotFault. For setup moves at rest (e.g. to the start
+        posture), never inside the supervised loop.
         """
         robot = self._live()
-        self._check_position(q)
+        q = self._check_position(q)
         if not 0 < speed <= 1:
             raise ValueError(f"speed must be in (0, 1], got {speed}")
         self._reset_stream()
         try:
             self._brake(robot)  # ends the idle hold: a position motion cannot take over a velocity one
-            robot.move(franky.JointMotion(np.asarray(q, dtype=float), relative_dynamics_factor=speed),
-                       asynchronous=False)
-            self._hold(robot)
+            robot.move(franky.JointMotion(q, relative_dynamics_factor=speed), asynchronous=False)
         except Exception as exc:  # noqa: BLE001
             raise self._fail(exc, "the point-to-point move") from exc
+        self._settle(robot, q)
+
+    def _settle(self, robot: franky.Robot, q: np.ndarray) -> None:
+        """Velocity-track the fixed target `q` until every joint has stayed within SETTLE_TOLERANCE for
+        SETTLE_WINDOW."""
+        t0 = self.clock.now()
+        inside_since: float | None = None
+        worst = math.inf
+        try:
+            while True:
+                st = self.state()
+                err = q - st.q
+                worst = float(np.max(np.abs(err)))
+                now = self.clock.now()
+                if worst > SETTLE_TOLERANCE:
+                    inside_since = None
+                elif inside_since is None:
+                    inside_since = now
+                elif now - inside_since >= SETTLE_WINDOW:
+                    break
+                if self.clock.now() - t0 > SETTLE_TIMEOUT:
+                    j = int(np.argmax(np.abs(err)))
+                    raise RobotFault(f"the arm did not settle at its goal within {SETTLE_TIMEOUT:.0f} s: joint "
+                                     f"{j + 1} is {abs(err[j]) * 1000:.2f} mrad off (tolerance "
+                                     f"{SETTLE_TOLERANCE * 1000:.1f} mrad)")
+                v = np.clip(self.gain * err, -SETTLE_SPEED, SETTLE_SPEED)
+                robot.move(franky.JointVelocityMotion(v, duration=franky.Duration(int(round(self.deadman * 1000)))),
+                           asynchronous=True)
+                self._holding = False
+                self.clock.sleep(self.send_period)
+            self._brake(robot)
+            self._hold(robot)
+        except (DriverError, RobotFault):
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise self._fail(exc, "settling at the goal") from exc
+        self.settle_error = worst
 
     def _check_position(self, q: np.ndarray) -> np.ndarray:
         q = np.asarray(q, dtype=float)

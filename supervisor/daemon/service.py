@@ -261,6 +261,7 @@ class Daemon:
     def _arm(self, how: str) -> dict[str, Any]:
         if self.sup.model is None:
             raise Refused(f"{how} needs a target model (model build, or model load FILE)")
+        self._reconnect_robot(how)
         problems = self.self_check(timeout=2.0)
         problems += self.can.arm_problems()  # CAN side channel (issue 12): bus open, no fault, or no arming
         if problems:
@@ -268,6 +269,19 @@ class Daemon:
         self.fault = None
         self._set_state(State.ARMED, how)
         return {"ok": True, "state": self.state.value}
+
+    def _reconnect_robot(self, why: str) -> None:
+        """A robot link known dead (franka: libfranka's robot object does not survive a lost link) is
+        connected anew, at rest, on an explicit request only (arm, rearm, model build): the arm does not move."""
+        robot = self.drivers.robot
+        if getattr(robot, "connected", True):
+            return
+        self._log("robot_reconnect", why=why)
+        try:
+            robot.recover()
+        except Exception as exc:  # noqa: BLE001 - reported as the refusal's reason
+            raise Refused(f"{why} refused: the robot link is lost and reconnecting failed: "
+                          f"{type(exc).__name__}: {exc}") from None
 
     def _reload(self, file: str | None) -> dict[str, Any]:
         if self.state is not State.IDLE:
@@ -307,6 +321,7 @@ class Daemon:
             self.sup.use_model(model, model.T_base_cam0)
             self._model_target = None  # [issue-10rec] no model images: sessions are not recorded
         elif action == "build":
+            self._reconnect_robot("model build")
             view = getattr(self.drivers.camera, "start_view", None)
             if view is None:
                 T0 = self.sup.camera_pose()
@@ -317,7 +332,11 @@ class Daemon:
                 roi, board = DepthROI(float(depth[0]) / 1000, float(depth[1]) / 1000), None
             else:
                 T0, roi, board = view()
-            model = self.sup.capture_model(T0, roi, board)
+            try:
+                model = self.sup.capture_model(T0, roi, board)
+            except Exception as exc:
+                self._log("model_failed", action=action, error=f"{type(exc).__name__}: {exc}")
+                raise
             self._model_target = (roi, board)  # [issue-10rec] for session recordings
         else:
             raise Refused("model needs action build or load")
@@ -342,7 +361,7 @@ class Daemon:
         # Every arc starts at the model view; after a run the arm rests where it halted: move back first (a
         # planned, checked setup move away from the boundary, part of this explicit request).
         kin, robot = self.drivers.kin, self.drivers.robot
-        q_start = kin.ik_or_raise(self.sup.T_base_cam_model, robot.state().q, "camera")
+        q_start = self.sup.setup_goal(self.sup.T_base_cam_model, robot.state().q)
         if np.max(np.abs(q_start - robot.state().q)) > START_TOLERANCE:
             self._log("return_to_start")
             self.sup.move_camera_to(self.sup.T_base_cam_model)

@@ -27,7 +27,7 @@ import numpy as np
 from supervisor.arm.kinematics import PandaKinematics
 from supervisor.clock import Clock, MonotonicClock, SimClock
 from supervisor.config import Config
-from supervisor.errors import CameraTimeout
+from supervisor.errors import CameraTimeout, KinematicsError
 from supervisor.geometry import make_T
 from supervisor.localization.model import TargetModel, build_model
 from supervisor.motion.joint_move import move_camera_to
@@ -122,6 +122,7 @@ def open_drivers(cfg: Config, *, realtime: bool = False, scene: str | None = Non
     return Drivers(robot, camera, kin, clock, realtime)
 
 
+SETUP_MARGIN = math.radians(1.0)  # rad: setup poses keep this far inside the joint limits where they can
 SWITCH_INTERVAL = 2e-4  # s: how long a thread holding the GIL may keep a waiting tick thread out
 
 
@@ -204,6 +205,7 @@ class Supervisor:
         self.model_images: list | None = None  # [issue-10rec] set by capture_model (session recordings)
         self.final_model: TargetModel | None = None  # the model the last run's worker ended with
         self.last_pacer = None
+        self._setup_kin: PandaKinematics | None = None  # the arm's kinematics with SETUP_MARGIN (setup_goal)
         self._loop: SupervisorLoop | None = None
         self._lock = threading.Lock()
 
@@ -238,8 +240,21 @@ class Supervisor:
         if own is None:
             move_camera_to(robot, kin, T_base_cam, self.pacer())
             return
-        q_goal = kin.ik_or_raise(T_base_cam, robot.state().q, "camera")
-        robot.move_to(q_goal)
+        robot.move_to(self.setup_goal(T_base_cam, robot.state().q))
+
+    def setup_goal(self, T_base_cam: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
+        """Joints for a setup pose (a model view, an arc's start): kept SETUP_MARGIN inside every joint limit
+        where the arm allows it, so that a real arm settling a fraction of a mrad past its goal (franky-sim:
+        +-0.5 mrad) does not start its arc beyond a limit; at the limits themselves otherwise."""
+        kin = self.drivers.kin
+        if self._setup_kin is None:
+            self._setup_kin = PandaKinematics(T_flange_cam=kin.T_flange_cam, urdf=self.cfg.robot.urdf,
+                                              arm=self.cfg.robot.arm, position_margin=SETUP_MARGIN)
+        try:
+            return self._setup_kin.ik_or_raise(T_base_cam, np.clip(q_seed, self._setup_kin.q_min,
+                                                                   self._setup_kin.q_max), "camera")
+        except KinematicsError:
+            return kin.ik_or_raise(T_base_cam, q_seed, "camera")
 
     def frame_at_rest(self, timeout: float | None = None):
         """One new frame exposed after now (the robot is at rest); CameraTimeout if none comes in time

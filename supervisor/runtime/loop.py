@@ -4,7 +4,7 @@ One loop serves the dry-run (simulated clock, sim robot, synthetic camera) and
 the daemon (monotonic clock, real drivers): everything is injected.
 
 Per tick:
-1. read the robot state; a gap longer than the stage's `pose_gap` is a fault;
+1. read the robot state; a gap longer than the stage's `pose_gap`, or a state older than that, is a fault;
 2. grab a frame when one is due (continuous mode: every frame period while
    moving; stop-and-go: N frames at rest after each step) and hand it to the
    localization worker with the robot pose at the frame's time;
@@ -565,7 +565,10 @@ class SupervisorLoop:
         st = self._read_state(now)
         if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
             self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state")
-        fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9
+        elif now - st.t > self.stage.pose_gap + 1e-9:  # a frozen state (a controller gone): no new one arrives
+            self._fault(now, "state_gap", f"the robot state is {(now - st.t) * 1000:.1f} ms old "
+                                          f"(no new state since t={st.t:.4f})")
+        fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9 and now - st.t <= self.stage.pose_gap + 1e-9
         if st.t > self._last_state_t:
             self.history.add(st.t, st.q)
         self._last_state_t = st.t
