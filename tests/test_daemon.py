@@ -58,7 +58,7 @@ class Notify:
 
 
 class DaemonProc:
-    def __init__(self, tmp: Path, extra_env: dict[str, str] | None = None) -> None:
+    def __init__(self, tmp: Path, extra_env: dict[str, str] | None = None, config: Path | None = None) -> None:
         self.tmp = tmp
         self.sock = tmp / "run" / "control.sock"
         self.logs = tmp / "logs"
@@ -66,8 +66,10 @@ class DaemonProc:
         env = {**os.environ, "NOTIFY_SOCKET": str(tmp / "notify.sock"), "WATCHDOG_USEC": "1000000",
                **(extra_env or {})}
         self.out = open(tmp / "daemon.out", "w")  # noqa: SIM115
-        self.proc = subprocess.Popen([SUPERVISOR, "daemon", "--socket", str(self.sock), "--log-dir", str(self.logs)],
-                                     env=env, stdout=self.out, stderr=subprocess.STDOUT)
+        args = [SUPERVISOR, "daemon", "--socket", str(self.sock), "--log-dir", str(self.logs)]
+        if config is not None:
+            args += ["--config", str(config)]
+        self.proc = subprocess.Popen(args, env=env, stdout=self.out, stderr=subprocess.STDOUT)
 
     def ctl(self, *args: str, timeout: float = 200.0) -> tuple[int, dict]:
         r = subprocess.run([SUPERVISOR, "ctl", "--socket", str(self.sock), *args], capture_output=True, text=True,

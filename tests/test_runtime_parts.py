@@ -148,6 +148,31 @@ def test_process_worker_queue_is_bounded_and_drops_are_counted(recording):
         worker.close()
 
 
+def test_process_worker_drops_what_an_earlier_run_left_in_work(recording):
+    """A run that halted with frames still being localized: their results reach no later run (they carried
+    the earlier run's steps: a KeyError in the next run's loop), and they do not keep the new run busy."""
+    cfg, ds, model = recording
+    clock = MonotonicClock()
+    worker = ProcessWorker(model, cfg.localization, clock, processes=1, max_pending=4)
+    try:
+        jobs = _jobs(ds, model)
+        for j, h in jobs[:3]:
+            assert worker.submit(j, h)
+        worker.start_run(model)  # the next run begins before those results are back
+        assert not worker.busy and worker.oldest_pending() is None
+        time.sleep(0.5)
+        late = []
+        assert _wait(lambda: (late.extend(worker.poll(clock.now())), not worker._jobs)[1], 30.0)
+        assert late == []  # the earlier run's results were dropped, their slots freed
+        j, h = jobs[3]
+        assert worker.submit(j, h)
+        got = []
+        assert _wait(lambda: (got.extend(worker.poll(clock.now())), bool(got))[1], 30.0)
+        assert [r.job.seq for r in got] == [j.seq]
+    finally:
+        worker.close()
+
+
 @pytest.mark.parametrize("kind", ["thread", "process"])
 def test_workers_refine_the_model_and_later_frames_use_it(recording, kind):
     import dataclasses

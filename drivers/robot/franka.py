@@ -28,6 +28,12 @@ same holds while the arm waits and a state read never becomes libfranka's
 blocking `readOnce`. `T_base_flange` comes from our kinematic model; `reported_T_base_flange()` is
 the controller's own (franky's `O_T_EE` times the inverse of its `F_T_EE`).
 
+Scheduling. libfranka's constructor puts its calling thread on SCHED_FIFO 99 (even with
+`RealtimeConfig.Ignore`), and every thread that thread starts later inherits it: in the daemon that was
+the main thread, then the capture thread and the localization processes, which starved franky's own
+control thread (robot states 24-50 ms old on franky-sim). The driver puts the caller back as it was,
+and starts franky's control-loop thread from SCHED_FIFO `control_priority` (80) instead, where permitted.
+
 Errors. franky/libfranka exceptions are translated here: a lost or broken link
 (NetworkException, ProtocolException, ...) becomes DriverError, a refused motion
 or a reflex (ControlException, CommandException, ...) RobotFault, both chained.
@@ -35,7 +41,11 @@ or a reflex (ControlException, CommandException, ...) RobotFault, both chained.
 
 from __future__ import annotations
 
+import functools
 import math
+import os
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +67,9 @@ SETTLE_TOLERANCE = 0.5e-3  # rad per joint: where a setup move ends (the arc's s
 SETTLE_WINDOW = 0.05
 SETTLE_SPEED = 0.05  # rad/s: the settle's largest correction speed
 SETTLE_TIMEOUT = 3.0  # s
+# SCHED_FIFO priority of franky's control-loop thread (the 1 kHz exchange with the controller): above the
+# supervisor's tick thread (20) and render/simulator processes; libfranka itself would take 99.
+CONTROL_PRIORITY = 80
 # A dead or broken link: the robot object cannot be used again.
 _LINK_ERRORS = (franky.NetworkException, franky.ProtocolException, franky.IncompatibleVersionException)
 PANDA_HINT = (
@@ -71,6 +84,40 @@ def realtime_kernel() -> bool:
         return Path("/sys/kernel/realtime").read_text().strip() == "1"
     except OSError:
         return False
+
+
+def _serialized(method):
+    """The method under the driver's lock (`_io`): libfranka's robot object is used by one thread at a time,
+    the caller's or the hold thread's."""
+    @functools.wraps(method)
+    def locked(self, *args, **kwargs):
+        with self._io:
+            return method(self, *args, **kwargs)
+    return locked
+
+
+@contextmanager
+def _thread_scheduling(priority: int | None):
+    """Run the block with the calling thread on SCHED_FIFO `priority` (None: as it is), where permitted, and
+    put the thread's policy back afterwards, whatever the block changed (libfranka's constructor raises its
+    caller to SCHED_FIFO 99, which every thread that caller starts later would inherit)."""
+    try:
+        saved = (os.sched_getscheduler(0), os.sched_getparam(0))
+    except OSError:
+        saved = None
+    if priority is not None and saved is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except OSError:
+            pass  # unprivileged: franky's thread runs with the caller's policy
+    try:
+        yield
+    finally:
+        if saved is not None:
+            try:
+                os.sched_setscheduler(0, saved[0], saved[1])
+            except OSError:
+                pass
 
 
 def _translate(exc: BaseException, what: str) -> DriverError | RobotFault:
@@ -106,6 +153,7 @@ class FrankaRobot(Robot):
         relative_dynamics_factor: float = 1.0,
         realtime: bool | None = None,
         idle_hold: bool = True,
+        control_priority: int | None = CONTROL_PRIORITY,
         clock: Clock | None = None,
     ) -> None:
         if command_mode not in COMMAND_MODES:
@@ -134,7 +182,12 @@ class FrankaRobot(Robot):
         self.relative_dynamics_factor = float(relative_dynamics_factor)
         self.realtime = realtime_kernel() if realtime is None else bool(realtime)
         self.idle_hold = bool(idle_hold) and command_mode == "velocity"
+        self.control_priority = control_priority
         self._holding = False
+        self._hold_q: np.ndarray | None = None
+        self._hold_error: DriverError | RobotFault | None = None  # what stopped the hold thread, for the next caller
+        self._hold_thread: threading.Thread | None = None
+        self._io = threading.RLock()  # one franky call at a time: the caller's and the hold thread's
         self._period = float(control_period)
         self._v_max = kin.dq_max * relative_dynamics_factor
         self.motions_sent = 0
@@ -146,30 +199,37 @@ class FrankaRobot(Robot):
     # -- connection ------------------------------------------------------------
     def _connect(self) -> None:
         rt = franky.RealtimeConfig.Enforce if self.realtime else franky.RealtimeConfig.Ignore
-        try:
-            robot = franky.Robot(self.host, relative_dynamics_factor=self.relative_dynamics_factor,
-                                 realtime_config=rt)
-            robot.recover_from_errors()
-            # franky plans its motions (and its stop) within these; franky-control 2.0 defaults to the
-            # Panda's table on any arm, so an FR3 gets its own, lower, acceleration and jerk limits.
-            for limit, ours in ((robot.joint_velocity_limit, self.kin.dq_max),
-                                (robot.joint_acceleration_limit, self.kin.ddq_max),
-                                (robot.joint_jerk_limit, self.kin.dddq_max)):
-                limit.set(np.minimum(ours, np.asarray(limit.max, dtype=float)).tolist())
-            self._hold(robot)
-        except franky.IncompatibleVersionException as exc:
-            raise DriverUnavailable(f"robot at {self.host}: {exc}; {PANDA_HINT}") from exc
-        except franky.RealtimeException as exc:
-            raise DriverUnavailable(f"robot at {self.host}: {exc} (run on a PREEMPT_RT kernel, "
-                                    "or pass realtime=False off one, for a simulator only)") from exc
-        except Exception as exc:  # noqa: BLE001 - vendor errors are translated at the driver boundary
-            raise DriverError(f"cannot connect to the robot at {self.host}: {type(exc).__name__}: {exc}") from exc
-        self._robot = robot
-        self._raw: franky.RobotState | None = None
-        self._last_rt_ms: int | None = None
-        self._fresh_t: float | None = None
-        self._meas: tuple[float, np.ndarray] | None = None  # (arrival t, q) of the last fresh state
-        self._reset_stream()
+        with self._io:
+            try:
+                with _thread_scheduling(None):  # libfranka puts its caller on SCHED_FIFO 99: undone on return
+                    robot = franky.Robot(self.host, relative_dynamics_factor=self.relative_dynamics_factor,
+                                         realtime_config=rt)
+                robot.recover_from_errors()
+                # franky plans its motions (and its stop) within these; franky-control 2.0 defaults to the
+                # Panda's table on any arm, so an FR3 gets its own, lower, acceleration and jerk limits.
+                for limit, ours in ((robot.joint_velocity_limit, self.kin.dq_max),
+                                    (robot.joint_acceleration_limit, self.kin.ddq_max),
+                                    (robot.joint_jerk_limit, self.kin.dddq_max)):
+                    limit.set(np.minimum(ours, np.asarray(limit.max, dtype=float)).tolist())
+            except franky.IncompatibleVersionException as exc:
+                raise DriverUnavailable(f"robot at {self.host}: {exc}; {PANDA_HINT}") from exc
+            except franky.RealtimeException as exc:
+                raise DriverUnavailable(f"robot at {self.host}: {exc} (run on a PREEMPT_RT kernel, "
+                                        "or pass realtime=False off one, for a simulator only)") from exc
+            except Exception as exc:  # noqa: BLE001 - vendor errors are translated at the driver boundary
+                raise DriverError(f"cannot connect to the robot at {self.host}: {type(exc).__name__}: {exc}") from exc
+            self._robot = robot
+            self._raw: franky.RobotState | None = None
+            self._last_rt_ms: int | None = None
+            self._fresh_t: float | None = None
+            self._meas: tuple[float, np.ndarray] | None = None  # (arrival t, q) of the last fresh state
+            self._reset_stream()
+            try:
+                self._hold(robot)
+            except (DriverError, RobotFault):
+                raise
+            except Exception as exc:  # noqa: BLE001
+                raise self._fail(exc, "holding the arm after connecting") from exc
 
     def _reset_stream(self) -> None:
         self._last_cmd: np.ndarray | None = None
@@ -194,6 +254,7 @@ class FrankaRobot(Robot):
             self._robot = None  # libfranka's robot object is dead after a network error
         return err
 
+    @_serialized
     def reconnect(self) -> None:
         """Drop the robot object and connect a new one (libfranka's objects do not survive a lost link)."""
         self._check_open()
@@ -216,8 +277,10 @@ class FrankaRobot(Robot):
     def control_period(self) -> float:
         return self._period
 
+    @_serialized
     def state(self) -> RobotState:
         robot = self._live()
+        self._raise_hold_error()  # a fault the hold thread met at rest goes to the next caller
         try:
             raw = robot.state
         except Exception as exc:  # noqa: BLE001
@@ -242,6 +305,7 @@ class FrankaRobot(Robot):
         self._meas = (self._fresh_t, q)
         return RobotState(self._fresh_t, rt_ms, q, dq, self.kin.fk(q, "flange"), robot_time=rt_ms / 1000.0)
 
+    @_serialized
     def reported_T_base_flange(self) -> np.ndarray:
         """The controller's own flange pose at the last state (franky's O_T_EE * F_T_EE^-1)."""
         if self._raw is None:
@@ -250,63 +314,55 @@ class FrankaRobot(Robot):
         return np.asarray(raw.O_T_EE.matrix) @ np.linalg.inv(np.asarray(raw.F_T_EE.matrix))
 
     def move_to(self, q: np.ndarray, speed: float = 0.2) -> None:
-        """Blocking point-to-point move to `q` with franky's own planner at `speed` x the limits, then a
-        settle onto `q` within `SETTLE_TOLERANCE` per joint.
+        """Blocking point-to-point move to `q` with franky's own planner at `speed` x the limits, then
+        held at `q` (the active hold) until every joint has stayed within SETTLE_TOLERANCE of it for
+        SETTLE_WINDOW.
 
         franky's `JointMotion` ends where the controller's impedance leaves the joints (franky-sim: up to
-        3 mrad off on joint 7, more than the 1 mrad at which the supervisor accepts an arc's start), so the
-        settle pulls the measured joints in with the same velocity tracking the supervised stream uses
-        (`gain` on the error, at most `SETTLE_SPEED`), each motion held for `deadman`. An arm that does
-        not settle within `SETTLE_TIMEOUT` raises RobotFault. For setup moves at rest (e.g. to the start
-        posture), never inside the supervised loop.
+        3 mrad off on joint 7, more than the 1 mrad at which the supervisor accepts an arc's start); the
+        hold pulls them in. An arm that does not settle within SETTLE_TIMEOUT raises RobotFault. For setup
+        moves at rest (e.g. to the start posture), never inside the supervised loop.
         """
-        robot = self._live()
         q = self._check_position(q)
         if not 0 < speed <= 1:
             raise ValueError(f"speed must be in (0, 1], got {speed}")
-        self._reset_stream()
-        try:
-            self._brake(robot)  # ends the idle hold: a position motion cannot take over a velocity one
-            robot.move(franky.JointMotion(q, relative_dynamics_factor=speed), asynchronous=False)
-        except Exception as exc:  # noqa: BLE001
-            raise self._fail(exc, "the point-to-point move") from exc
-        self._settle(robot, q)
+        with self._io:
+            robot = self._live()
+            self._reset_stream()
+            try:
+                self._brake(robot)  # ends the hold: a position motion cannot take over a velocity one
+                self._move(robot, franky.JointMotion(q, relative_dynamics_factor=speed), asynchronous=False)
+                self._hold(robot, q)
+            except (DriverError, RobotFault):
+                raise
+            except Exception as exc:  # noqa: BLE001
+                raise self._fail(exc, "the point-to-point move") from exc
+        self._wait_settled(q)
 
-    def _settle(self, robot: franky.Robot, q: np.ndarray) -> None:
-        """Velocity-track the fixed target `q` until every joint has stayed within SETTLE_TOLERANCE for
-        SETTLE_WINDOW."""
+    def _wait_settled(self, q: np.ndarray) -> None:
+        """Wait (not holding the driver's lock: the hold thread does the work) until the measured joints
+        have stayed within SETTLE_TOLERANCE of `q` for SETTLE_WINDOW."""
         t0 = self.clock.now()
         inside_since: float | None = None
-        worst = math.inf
-        try:
-            while True:
-                st = self.state()
-                err = q - st.q
-                worst = float(np.max(np.abs(err)))
-                now = self.clock.now()
-                if worst > SETTLE_TOLERANCE:
-                    inside_since = None
-                elif inside_since is None:
-                    inside_since = now
-                elif now - inside_since >= SETTLE_WINDOW:
-                    break
-                if self.clock.now() - t0 > SETTLE_TIMEOUT:
-                    j = int(np.argmax(np.abs(err)))
-                    raise RobotFault(f"the arm did not settle at its goal within {SETTLE_TIMEOUT:.0f} s: joint "
-                                     f"{j + 1} is {abs(err[j]) * 1000:.2f} mrad off (tolerance "
-                                     f"{SETTLE_TOLERANCE * 1000:.1f} mrad)")
-                v = np.clip(self.gain * err, -SETTLE_SPEED, SETTLE_SPEED)
-                robot.move(franky.JointVelocityMotion(v, duration=franky.Duration(int(round(self.deadman * 1000)))),
-                           asynchronous=True)
-                self._holding = False
-                self.clock.sleep(self.send_period)
-            self._brake(robot)
-            self._hold(robot)
-        except (DriverError, RobotFault):
-            raise
-        except Exception as exc:  # noqa: BLE001
-            raise self._fail(exc, "settling at the goal") from exc
-        self.settle_error = worst
+        while True:
+            with self._io:
+                self._raise_hold_error()
+                err = q - self.state().q
+            worst = float(np.max(np.abs(err)))
+            now = self.clock.now()
+            if worst > SETTLE_TOLERANCE:
+                inside_since = None
+            elif inside_since is None:
+                inside_since = now
+            elif now - inside_since >= SETTLE_WINDOW:
+                self.settle_error = worst
+                return
+            if now - t0 > SETTLE_TIMEOUT:
+                j = int(np.argmax(np.abs(err)))
+                raise RobotFault(f"the arm did not settle at its goal within {SETTLE_TIMEOUT:.0f} s: joint "
+                                 f"{j + 1} is {abs(err[j]) * 1000:.2f} mrad off (tolerance "
+                                 f"{SETTLE_TOLERANCE * 1000:.1f} mrad)")
+            self.clock.sleep(self.send_period)
 
     def _check_position(self, q: np.ndarray) -> np.ndarray:
         q = np.asarray(q, dtype=float)
@@ -319,6 +375,7 @@ class FrankaRobot(Robot):
                                   "position")
         return q
 
+    @_serialized
     def command(self, q: np.ndarray) -> None:
         """Check `q` against the position limits and the velocity implied since the last target, then track it."""
         robot = self._live()
@@ -350,7 +407,7 @@ class FrankaRobot(Robot):
             motion = franky.JointMotion(franky.JointState(q, self._stream_velocity(q, now)),
                                         return_when_finished=False)
         try:
-            robot.move(motion, asynchronous=True)
+            self._move(robot, motion, asynchronous=True)
         except Exception as exc:  # noqa: BLE001
             raise self._fail(exc, "sending the joint command") from exc
         self.motions_sent += 1
@@ -377,37 +434,84 @@ class FrankaRobot(Robot):
         return franky.JointVelocityMotion(v, duration=franky.Duration(int(round(self.deadman * 1000))))
 
     def stop(self) -> None:
-        """Brake to rest from the current motion state (franky's stop motion) and wait until at rest."""
-        robot = self._live()
-        self._reset_stream()
-        try:
-            if self._holding and robot.is_in_control:
-                return  # already at rest, held
-            self._brake(robot)
-            self._hold(robot)
-        except Exception as exc:  # noqa: BLE001
-            raise self._fail(exc, "the controlled stop") from exc
+        """Brake to rest from the current motion state (franky's stop motion), then hold there."""
+        with self._io:
+            robot = self._live()
+            self._reset_stream()
+            try:
+                if self._holding and robot.is_in_control:
+                    return  # already at rest, held
+                self._brake(robot)
+                self._hold(robot)
+            except (DriverError, RobotFault):
+                raise
+            except Exception as exc:  # noqa: BLE001
+                raise self._fail(exc, "the controlled stop") from exc
 
     @property
     def holding(self) -> bool:
-        """True while the idle hold (a zero-velocity motion) keeps the arm at rest."""
+        """True while the active hold keeps the arm at rest."""
         return self._holding
+
+    def _move(self, robot: franky.Robot, motion, *, asynchronous: bool) -> None:
+        """franky's `move`, from a thread briefly on SCHED_FIFO `control_priority` (where permitted): a move
+        that starts franky's control loop starts its thread, which inherits the caller's policy, so the
+        1 kHz loop answering the controller runs above the supervisor's own threads, whichever thread moved."""
+        with _thread_scheduling(self.control_priority):
+            robot.move(motion, asynchronous=asynchronous)
 
     def _brake(self, robot: franky.Robot) -> None:
         self._holding = False
         if robot.is_in_control:
             stop = franky.JointVelocityStopMotion() if self.command_mode == "velocity" else franky.JointStopMotion()
-            robot.move(stop, asynchronous=False)
+            self._move(robot, stop, asynchronous=False)
 
-    def _hold(self, robot: franky.Robot) -> None:
-        """At rest, keep a zero-velocity motion running (`idle_hold`): state reads then stay reads of the
-        control loop's latest sample (us, not libfranka's blocking readOnce of up to a packet period), and a
-        controller that dies while the arm rests freezes the state within a tick, as in motion."""
-        if self.idle_hold:
-            robot.move(franky.JointVelocityMotion(np.zeros(N_JOINTS), duration=franky.Duration(HOLD_MS)),
-                       asynchronous=True)
-            self._holding = True
+    def _hold(self, robot: franky.Robot, q: np.ndarray | None = None) -> None:
+        """At rest, hold the arm at `q` (default: where it is) with the active hold (`idle_hold`): every
+        `send_period` the hold thread sends the velocity that pulls the measured joints back to `q` (`gain`,
+        at most SETTLE_SPEED), held for `deadman`. A zero-velocity motion alone lets joints drift (franky-sim's
+        joint 7: 15 mrad in 2 s). Motions keep running, so state reads stay reads of the control loop's
+        latest sample (not libfranka's blocking readOnce), and a controller that dies while the arm rests
+        freezes the state within a tick, as in motion."""
+        if not self.idle_hold:
+            return
+        self._hold_q = np.array(self.state().q if q is None else q, dtype=float)
+        self._hold_error = None
+        self._send_hold(robot)
+        self._holding = True
+        if self._hold_thread is None or not self._hold_thread.is_alive():
+            self._hold_thread = threading.Thread(target=self._hold_loop, name=f"franka hold {self.host}",
+                                                 daemon=True)
+            self._hold_thread.start()
 
+    def _send_hold(self, robot: franky.Robot) -> None:
+        st = self.state()
+        if self.clock.now() - self._fresh_t > STALE_STATE_S:
+            return  # nothing fresh to steer by: the running motion's dead-man hold runs out instead
+        v = np.clip(self.gain * (self._hold_q - st.q), -SETTLE_SPEED, SETTLE_SPEED)
+        self._move(robot, franky.JointVelocityMotion(v, duration=franky.Duration(int(round(self.deadman * 1000)))),
+                   asynchronous=True)
+
+    def _hold_loop(self) -> None:
+        """The hold thread: one correction every `send_period` while holding; ends with the driver."""
+        while not self.closed:
+            self.clock.sleep(self.send_period)
+            with self._io:
+                if not self._holding or self._robot is None or self.closed:
+                    continue
+                try:
+                    self._send_hold(self._robot)
+                except (DriverError, RobotFault) as exc:
+                    self._holding, self._hold_error = False, exc
+                except Exception as exc:  # noqa: BLE001 - translated, raised to the next caller
+                    self._holding, self._hold_error = False, self._fail(exc, "holding the arm at rest")
+
+    def _raise_hold_error(self) -> None:
+        if self._hold_error is not None:
+            err, self._hold_error = self._hold_error, None
+            raise err
+
+    @_serialized
     def recover(self) -> None:
         """Clear a robot error (franky `recover_from_errors`); after a lost link, connect a new robot object."""
         self._check_open()
@@ -426,6 +530,7 @@ class FrankaRobot(Robot):
         except Exception as exc:  # noqa: BLE001
             raise self._fail(exc, "holding after recovery") from exc
 
+    @_serialized
     def _close(self) -> None:
         # Let the arm come to rest; closing must not raise (the arm's own reflexes still apply).
         if self._robot is not None:

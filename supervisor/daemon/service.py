@@ -427,8 +427,12 @@ class Daemon:
 
         recorder = self._start_recording(plan)  # [issue-10rec]
         # CAN side channel (issue 12): STOP on every brake, STATUS from the localization results
-        record = self.sup.run(plan, heartbeat=heartbeat, on_brake=self.can.on_brake,
-                              observer=Observers(self.can.observer(), recorder))
+        try:
+            record = self.sup.run(plan, heartbeat=heartbeat, on_brake=self.can.on_brake,
+                                  observer=Observers(self.can.observer(), recorder))
+        except Exception as exc:  # noqa: BLE001 - refused before the first command (the loop itself never raises)
+            self._run_refused(exc, recorder)
+            return
         self.last_summary = self._summary(record)
         if recorder is not None:  # [issue-10rec] the writer thread finishes the session (in a hurry at shutdown)
             recorder.finish(record, self.last_summary, hurry=self._shutdown.is_set())
@@ -438,6 +442,22 @@ class Daemon:
             self.fault = record.halt_reason[len("fault:"):]
         self._log("run_ended", **self.last_summary)
         self._set_state(State.HALTED, record.halt_reason)
+
+    def _run_refused(self, exc: Exception, recorder) -> None:
+        """A run that could not start (e.g. the arm drifted off the plan's start between planning and the
+        first tick): nothing was commanded; brake anyway, latch a halt with reason `rejected`, and say why."""
+        why = f"{type(exc).__name__}: {exc}"
+        try:
+            self.drivers.robot.stop()
+        except Exception as stop_exc:  # noqa: BLE001 - reported; the run is already refused
+            why += f"; the stop failed too: {type(stop_exc).__name__}: {stop_exc}"
+        if recorder is not None:  # [issue-10rec] an empty session: finished, with no run record
+            recorder.finish(None, None, hurry=True)
+        self.last_summary = {"halt_angle_deg": 0.0, "halt_reason": "rejected", "theta_allowed_deg": None,
+                             "max_executed_angle_deg": 0.0, "max_overshoot_deg": None, "stage": self.sup.stage.name,
+                             "config_sha256": self.cfg.sha256, "error": why}
+        self._log("run_ended", **self.last_summary)
+        self._set_state(State.HALTED, "rejected")
 
     def _start_recording(self, plan):
         """[issue-10rec] A SessionRecorder for this run under `<log_dir>/sessions/`, or None (off; no model images)."""

@@ -378,7 +378,8 @@ class ProcessWorker:
         self._await_ready(start_timeout)
         self._lock = threading.Lock()
         self._free = list(range(self.max_pending))
-        self._jobs: dict[int, tuple[FrameJob, int]] = {}  # key -> (job, process index)
+        self._jobs: dict[int, tuple[FrameJob, int, int]] = {}  # key -> (job, process index, run)
+        self._run = 0  # start_run's count: results and refits of an earlier run are dropped
         self._load = [0] * processes
         self._key = 0
         self._done: deque[JobResult] = deque()
@@ -420,6 +421,8 @@ class ProcessWorker:
     def start_run(self, model: TargetModel) -> None:
         """A new motion: this model, a new refinement schedule, nothing pending."""
         with self._lock:
+            self._run += 1  # what the last run left in work comes back to nobody
+            self._done.clear()
             self._model = model
             self._refinement = _Refinement(model, self.settings)
             self._refinement.refiner = None
@@ -459,7 +462,7 @@ class ProcessWorker:
         self._key += 1
         i = int(np.argmin(self._load))
         self._load[i] += 1
-        self._jobs[self._key] = (job, i)
+        self._jobs[self._key] = (job, i, self._run)
         self._queues[i].put(("frame", self._key, slot, image.shape, hint))
 
     def poll(self, now: float) -> list[JobResult]:
@@ -477,7 +480,7 @@ class ProcessWorker:
             self._observing = False  # one refit: later observations are not needed
         with self._lock:
             self._refitting = True
-        self._queues[0].put(("refit", step))  # after every observation sent so far (one FIFO queue)
+        self._queues[0].put(("refit", (self._run, step)))  # after every observation sent so far (one FIFO queue)
 
     def take_notes(self) -> list[dict[str, Any]]:
         with self._lock:
@@ -487,11 +490,11 @@ class ProcessWorker:
     @property
     def busy(self) -> bool:
         with self._lock:
-            return bool(self._jobs or self._held)
+            return bool(self._held) or any(run == self._run for _, _, run in self._jobs.values())
 
     def oldest_pending(self) -> float | None:
         with self._lock:
-            times = [j.t for j, _ in self._jobs.values()] + [j.t for j, _ in self._held]
+            times = [j.t for j, _, run in self._jobs.values() if run == self._run] + [j.t for j, _ in self._held]
         return min(times, default=None)
 
     def _raise_error(self) -> None:
@@ -518,9 +521,11 @@ class ProcessWorker:
                 self._error = payload
                 continue
             with self._lock:
-                job, i = self._jobs.pop(key, (None, 0))
+                job, i, run = self._jobs.pop(key, (None, 0, -1))
                 self._load[i] -= 1
                 self._free.append(slot)
+                if run != self._run:
+                    job = None  # an earlier run's frame: its result belongs to no run now
             if kind == "error":
                 self._error = payload
                 continue
@@ -537,7 +542,11 @@ class ProcessWorker:
         if self._observing and res.matches is not None and (r.continuous or job.step < r.steps):
             self._queues[0].put(("observe", job.T_base_cam, *res.matches))
 
-    def _refitted(self, step: int, model: TargetModel, stats: dict[str, Any]) -> None:
+    def _refitted(self, key: tuple[int, int], model: TargetModel, stats: dict[str, Any]) -> None:
+        run, step = key
+        with self._lock:
+            if run != self._run:
+                return  # an earlier run's refit: this run has its own model and schedule
         for q in self._queues:
             q.put(("model", model))
         with self._lock:
