@@ -15,6 +15,7 @@ from drivers.bus.pythoncan import PythonCanBus
 from loop_fakes import DEG, PlainCamera, build_loop, stage
 from supervisor.can.channel import SideChannel
 from supervisor.can.codec import Codec
+from supervisor.can.link import StatusFeed
 from supervisor.can.monitor import HeartbeatMonitor
 from supervisor.can.settings import CanSettings
 from supervisor.clock import MonotonicClock
@@ -34,6 +35,7 @@ class Cell:
         self.monitor = HeartbeatMonitor(Codec.from_settings(self.settings), timeout=0.1)
         self.beats: list[float] = []  # arrival times of valid heartbeats
         self.stops: list[str] = []
+        self.statuses: list[dict] = []
         self._lock = threading.Lock()
         self.rx = self.plc.start_receiver(self._frame, lambda f: None)
 
@@ -45,6 +47,8 @@ class Cell:
                 self.beats.append(frame.t)
             if frame.arbitration_id == self.settings.frames["stop"]:
                 self.stops.append(self.codec.decode("stop", frame.data)["Reason"])
+            if frame.arbitration_id == self.settings.frames["status"]:
+                self.statuses.append(self.codec.decode("status", frame.data))
 
     def close(self) -> None:
         self.ch.close()
@@ -169,3 +173,17 @@ def test_external_stop_brakes_within_one_tick_of_its_arrival(cell):
     assert brake["t"] >= arrived[0] and len(between) <= 1  # the first tick after it (or the next) brakes
     assert rec.halt_s < 12 * DEG - 1e-6 and cell.stops == ["external_stop"]
     assert math.isfinite(rec.halt_s)
+
+
+def test_status_frames_carry_the_viewing_angle_and_the_allowance_in_force(cell):
+    rig, clock = _realtime_rig()
+    loop = rig.loop
+    loop.observer = StatusFeed(lambda: cell.ch, lambda: loop.T_base_cam_model, lambda: loop.theta_allowed)
+    rec = loop.run(max_time=30.0)
+    time.sleep(0.05)
+    assert cell.statuses, rec.halt_reason
+    allowed_deg = {round(math.degrees(a), 2) for _, a, _ in rec.allowance_history}
+    for status in cell.statuses:
+        assert status["ThetaAllowed"] != "unknown", status
+        assert min(abs(status["ThetaAllowed"] - a) for a in allowed_deg) <= 0.011, (status, allowed_deg)
+        assert 0.0 <= status["Theta"] <= math.degrees(rec.halt_s) + 0.5

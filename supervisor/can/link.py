@@ -12,7 +12,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from drivers.bus.base import BusFault
 from supervisor.errors import SupervisorError
@@ -24,11 +27,13 @@ if TYPE_CHECKING:
 MAX_ALARMS = 20
 
 
-class _StatusObserver:
-    """The loop's observer: a STATUS frame (rate-limited) from each localization result."""
+class StatusFeed:
+    """The loop's observer for the side channel: a STATUS frame (rate-limited) from each localization
+    result, with the viewing angle of that frame and the allowance in force (`allowance()`, rad, or None)."""
 
-    def __init__(self, link: CanLink) -> None:
-        self.link = link
+    def __init__(self, channel: Callable[[], SideChannel | None], model_view: Callable[[], np.ndarray | None],
+                 allowance: Callable[[], float | None]) -> None:
+        self.channel, self.model_view, self.allowance = channel, model_view, allowance
 
     def state(self, st) -> None:  # noqa: ARG002
         pass
@@ -37,10 +42,10 @@ class _StatusObserver:
         pass
 
     def result(self, jr) -> None:
-        ch, T0 = self.link.channel, self.link.d.sup.T_base_cam_model
+        ch, T0 = self.channel(), self.model_view()
         if ch is None or T0 is None:
             return
-        ch.status(jr.ready_t, viewing_angle(T0, jr.job.T_base_cam), None, jr.result.n_inliers)
+        ch.status(jr.ready_t, viewing_angle(T0, jr.job.T_base_cam), self.allowance(), jr.result.n_inliers)
 
 
 class CanLink:
@@ -113,7 +118,10 @@ class CanLink:
             self.channel.stop(now, reason)
 
     def observer(self):
-        return None if self.channel is None else _StatusObserver(self)
+        if self.channel is None:
+            return None
+        sup = self.d.sup
+        return StatusFeed(lambda: self.channel, lambda: sup.T_base_cam_model, sup.theta_allowed)
 
     def summary(self) -> dict[str, Any] | None:
         if not self.configured:

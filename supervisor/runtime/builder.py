@@ -395,6 +395,12 @@ class Supervisor:
             return ThreadWorker(self.model, cfg.localization, d.clock, threads=self.workers)
         return InlineWorker(self.model, cfg.localization, self.latency_scale)
 
+    def theta_allowed(self) -> float | None:
+        """The running motion's allowance (rad), or None when nothing is moving."""
+        with self._lock:
+            loop = self._loop
+        return None if loop is None else loop.theta_allowed
+
     def request_stop(self, reason: str = "stop", halt_reason: str | None = None) -> bool:
         """Brake the running motion, latched (thread-safe); False when nothing is moving."""
         with self._lock:

@@ -505,6 +505,11 @@ class SupervisorLoop:
             raise _RobotLost("bad_state", problem)
         return st
 
+    @property
+    def theta_allowed(self) -> float:
+        """The allowance in force (rad): where the motion may go, as the gate last decided."""
+        return self._theta_allowed
+
     # -- the loop --------------------------------------------------------------------------
     def run(self, max_time: float = 600.0) -> RunRecord:
         """Run the motion to a halt; every failure inside ends as a latched halt, never as an exception."""
