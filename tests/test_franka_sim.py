@@ -166,6 +166,10 @@ def test_commands_that_stop_coming_let_the_arm_brake_by_itself(robot):
     end = robot.state()
     assert abs(end.dq[0]) < 0.01
     assert end.q[0] - last[0] < 0.2 * (robot.deadman + 0.1)  # coasted at most the dead-man hold + a brake
+    assert robot.holding  # then the driver holds it where it came to rest
+    rest = robot.state().q
+    time.sleep(0.5)
+    assert np.abs(robot.state().q - rest).max() < 2e-3  # held (a zero-velocity motion let joint 7 drift 15 mrad in 2 s)
 
 
 def test_killed_server_is_noticed_by_state_age_then_raises_and_a_new_robot_object_reconnects(kin):

@@ -50,7 +50,16 @@ class SimCamera(Camera):
 
             renderer = RenderProcess(scene, cfg.camera.intrinsics)
         T_flange_cam = np.array(cfg.camera.T_flange_cam, float)
-        return cls(renderer, lambda: robot.state().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
+        recent = getattr(robot, "recent_state", None)
+        if recent is not None and not isinstance(clock, SimClock):
+            # while the control tick reads the robot every tick, its newest state (at most 1.5 ticks old)
+            max_age = 1.5 * robot.control_period
+
+            def read():
+                return recent(max_age)
+        else:
+            read = robot.state
+        return cls(renderer, lambda: read().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
                    noise_seed=seed)
 
     @property

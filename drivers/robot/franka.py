@@ -496,15 +496,32 @@ class FrankaRobot(Robot):
         """The hold thread: one correction every `send_period` while holding; ends with the driver."""
         while not self.closed:
             self.clock.sleep(self.send_period)
+            if not self._holding and not self._stream_ended():
+                # In motion the caller streams: never take the lock then (a preempted ordinary thread holding
+                # it would keep the SCHED_FIFO tick thread waiting: a priority inversion).
+                continue
             with self._io:
-                if not self._holding or self._robot is None or self.closed:
+                if self._robot is None or self.closed:
                     continue
                 try:
+                    if not self._holding:
+                        if not self._stream_ended():
+                            continue
+                        # the caller stopped streaming (a run ended at rest, or a hung supervisor whose last
+                        # motion's dead-man hold ran out and braked the arm): hold it where it is
+                        self._reset_stream()
+                        self._hold(self._robot)
+                        continue
                     self._send_hold(self._robot)
                 except (DriverError, RobotFault) as exc:
                     self._holding, self._hold_error = False, exc
                 except Exception as exc:  # noqa: BLE001 - translated, raised to the next caller
                     self._holding, self._hold_error = False, self._fail(exc, "holding the arm at rest")
+
+    def _stream_ended(self) -> bool:
+        """True when the last streamed target is older than the dead-man hold (and a send period)."""
+        t = self._last_cmd_t
+        return t is not None and self.clock.now() - t > self.deadman + self.send_period
 
     def _raise_hold_error(self) -> None:
         if self._hold_error is not None:

@@ -46,9 +46,11 @@ from supervisor.stages import StageConfig
 class LockedRobot:
     """A robot driver behind one lock: safe to call from the tick and from a capture thread."""
 
-    def __init__(self, inner: RobotDriver) -> None:
+    def __init__(self, inner: RobotDriver, clock: Clock | None = None) -> None:
         self.inner = inner
+        self.clock = clock
         self._lock = threading.Lock()
+        self._latest = None  # the newest state any caller read
 
     @property
     def control_period(self) -> float:
@@ -56,7 +58,20 @@ class LockedRobot:
 
     def state(self):
         with self._lock:
-            return self.inner.state()
+            st = self.inner.state()
+            self._latest = st
+            return st
+
+    def recent_state(self, max_age: float):
+        """The newest state any caller read, if it is at most `max_age` old on the clock, else a new read.
+
+        For the sim camera's pose at exposure while the control tick reads the state every tick: the camera's
+        ordinary thread then takes no lock the SCHED_FIFO tick thread might have to wait for (a priority
+        inversion, tens of ms on a loaded machine)."""
+        st = self._latest
+        if st is not None and self.clock is not None and self.clock.now() - st.t <= max_age:
+            return st
+        return self.state()
 
     def command(self, q: np.ndarray) -> None:
         with self._lock:
@@ -112,7 +127,7 @@ def open_drivers(cfg: Config, *, realtime: bool = False, scene: str | None = Non
     kin = PandaKinematics(T_flange_cam=cfg.camera.T_flange_cam, urdf=cfg.robot.urdf, arm=cfg.robot.arm)
     # The sim camera reads the robot from its capture thread: every call goes through one lock, so a driver
     # (libfranka's robot object, the sim's state) is never used by two threads at once.
-    robot = LockedRobot(ROBOTS.load(cfg.robot.driver).from_config(cfg, kin=kin, clock=clock))
+    robot = LockedRobot(ROBOTS.load(cfg.robot.driver).from_config(cfg, kin=kin, clock=clock), clock)
     try:
         camera = CAMERAS.load(cfg.camera.driver).from_config(cfg, clock=clock, robot=robot, kin=kin, scene=scene,
                                                              seed=seed)
