@@ -141,15 +141,26 @@ SETUP_MARGIN = math.radians(1.0)  # rad: setup poses keep this far inside the jo
 SWITCH_INTERVAL = 2e-4  # s: how long a thread holding the GIL may keep a waiting tick thread out
 
 
-def realtime_thread_setup(priority: int = 20) -> dict[str, object]:
+HELPER_PRIORITY = 1  # SCHED_FIFO of the process's other Python threads while the tick runs real-time
+
+
+def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIORITY) -> dict[str, object]:
     """Prepare the calling thread to run the control tick: a short GIL switch interval (the worker threads
     hand the GIL back within 0.2 ms instead of 5 ms) and, where permitted (root, CAP_SYS_NICE or an
-    RLIMIT_RTPRIO), the SCHED_FIFO real-time policy for this thread alone. Returns what was applied, for
-    the event log; `realtime_thread_restore(that)` puts the thread back as it was."""
+    RLIMIT_RTPRIO), the SCHED_FIFO real-time policy for this thread.
+
+    The process's other Python threads (capture, result collector, event writer, queue feeders) go to
+    SCHED_FIFO `helpers` (1, the lowest real-time priority) for the run: each holds the GIL now and then,
+    and an ordinary thread holding it can be preempted by any other process for a scheduler slice, which
+    kept the tick from its GIL for 20-50 ms on a loaded 2-core machine (a robot-state gap). At the lowest
+    real-time priority they run whenever runnable; they are short and mostly blocked, and the tick still
+    preempts them. Returns what was applied, for the event log; `realtime_thread_restore(that)` puts every
+    thread back as it was."""
     import sys
+    import threading
 
     out: dict[str, object] = {"switch_interval_ms": SWITCH_INTERVAL * 1e3, "sched_fifo": False,
-                              "_previous": (sys.getswitchinterval(), _current_policy())}
+                              "_previous": (sys.getswitchinterval(), _current_policy()), "_helpers": []}
     sys.setswitchinterval(SWITCH_INTERVAL)
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
@@ -157,6 +168,25 @@ def realtime_thread_setup(priority: int = 20) -> dict[str, object]:
         out["priority"] = priority
     except (AttributeError, OSError) as exc:  # not Linux, or not permitted: the default policy
         out["sched_note"] = str(exc)
+        return out
+    if helpers is None:
+        return out
+    me = threading.get_native_id()
+    moved = []
+    for t in threading.enumerate():
+        tid = t.native_id
+        if tid is None or tid == me:
+            continue
+        try:
+            before = os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
+            if before[0] == os.SCHED_FIFO and before[1] >= helpers:
+                continue  # already real-time (e.g. a driver's own control thread)
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(helpers))
+            moved.append((tid, before))
+        except OSError:
+            continue  # the thread ended meanwhile
+    out["_helpers"] = moved
+    out["helper_threads"] = len(moved)
     return out
 
 
@@ -168,11 +198,16 @@ def _current_policy():
 
 
 def realtime_thread_restore(setup: dict[str, object]) -> None:
-    """Undo `realtime_thread_setup` for the calling thread (the run is over)."""
+    """Undo `realtime_thread_setup` for the calling thread and the helper threads (the run is over)."""
     import sys
 
     interval, policy = setup["_previous"]  # type: ignore[misc]
     sys.setswitchinterval(interval)
+    for tid, (pol, prio) in setup.get("_helpers", []):  # type: ignore[union-attr]
+        try:
+            os.sched_setscheduler(tid, pol, os.sched_param(prio))
+        except OSError:
+            pass  # ended meanwhile
     if policy is not None and setup.get("sched_fifo"):
         try:
             os.sched_setscheduler(0, policy[0], os.sched_param(policy[1]))
