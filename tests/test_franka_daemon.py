@@ -86,6 +86,21 @@ class Rig:
                 break
         return summary
 
+    def start_moving(self, attempts: int = 3) -> None:
+        """Arm (or rearm) and run the arc until it is seen moving a second after the start (a loaded machine
+        may fault a run at once: a correct latched halt, but then there is nothing moving to stop or kill)."""
+        for _ in range(attempts):
+            code, reply = self.ctl("rearm" if self.status()["state"] == "halted" else "arm")
+            assert code == 0, reply
+            code, reply = self.ctl("run", "--azimuth", "90")
+            assert code == 0, reply
+            if self.daemon.wait_state("moving", 30):
+                time.sleep(1.0)
+                if self.status()["state"] == "moving":
+                    return
+            self.ctl("wait", "--timeout", "60")
+        raise AssertionError(f"no run stayed moving in {attempts} attempts: {self.status()}")
+
     def close(self) -> None:
         try:
             self.daemon.stop()
@@ -116,30 +131,20 @@ def test_a_gated_arc_on_franky_sim_halts_within_the_allowance_on_the_reported_tr
 
 
 def test_ctl_stop_brakes_the_franka_arc_at_once(rig):
-    code, reply = rig.ctl("rearm" if rig.status()["state"] == "halted" else "arm")
-    assert code == 0, reply
-    assert rig.ctl("run", "--azimuth", "90")[0] == 0
-    assert rig.daemon.wait_state("moving", 30)
-    time.sleep(1.0)
-    if rig.status()["state"] != "moving":
-        pytest.skip("the run ended before the stop (a loaded machine faulted it)")  # pragma: no cover
+    rig.start_moving()
     code, reply = rig.ctl("stop")
     assert code == 0 and reply["ok"], reply
     code, reply = rig.ctl("wait", "--timeout", "60")
     assert code == 0, reply
-    assert reply["summary"]["halt_reason"] == "stop", reply
-    brake = [e for e in rig.events("brake") if e["reason"] == "stop"][-1]
-    halted = [e for e in rig.events("halted") if e["reason"] == "stop"][-1]
+    assert reply["summary"]["halt_reason"] == "stop:operator", reply
+    assert reply["summary"]["max_overshoot_deg"] <= 1e-6, reply
+    brake = [e for e in rig.events("brake") if e["reason"] == "stop:operator"][-1]
+    halted = [e for e in rig.events("halted") if e["reason"] == "stop:operator"][-1]
     assert halted["t"] - brake["t"] < 2.0  # braked to rest on the stage's braking profile
 
 
 def test_killing_franky_sim_mid_motion_is_a_state_gap_fault_and_a_new_controller_needs_rearm(rig):
-    code, reply = rig.ctl("rearm" if rig.status()["state"] == "halted" else "arm")
-    assert code == 0, reply
-    assert rig.ctl("run", "--azimuth", "90")[0] == 0
-    assert rig.daemon.wait_state("moving", 30)
-    time.sleep(1.0)
-    assert rig.status()["state"] == "moving"
+    rig.start_moving()
     rig.server.kill()
     t_kill = time.monotonic()
     code, reply = rig.ctl("wait", "--timeout", "60")
@@ -149,7 +154,7 @@ def test_killing_franky_sim_mid_motion_is_a_state_gap_fault_and_a_new_controller
     fault = [e for e in rig.events("fault")][-1]
     # the supervisor's own rule (a robot state older than 20 ms) noticed it, not libfranka's 1 s timeout
     assert fault["fault"] == "state_gap", fault
-    assert time.monotonic() - t_kill < 30
+    assert t_kill - 0.01 < fault["t"] < t_kill + 1.0, (fault, t_kill)  # this kill's, before libfranka's 1 s
     st = rig.status()
     assert st["state"] == "halted" and st["fault"], st
     code, reply = rig.ctl("rearm")  # the controller is gone: refused, with the reason
