@@ -134,8 +134,8 @@ def main() -> int:
             daemon.start_run()
             if daemon.wait_state("moving", 30):
                 time.sleep(1.0)
+                t_kill = time.monotonic()  # before: kill() also reaps the process and its output reader
                 server.kill()
-                t_kill = time.monotonic()
                 s = daemon.req(cmd="wait", timeout=60.0)["summary"]
                 fault = [e for e in daemon.events() if e["kind"] == "fault"][-1]
                 out["kill"] = {**s, "fault": fault["fault"], "detail": fault["detail"],

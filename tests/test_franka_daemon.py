@@ -145,8 +145,8 @@ def test_ctl_stop_brakes_the_franka_arc_at_once(rig):
 
 def test_killing_franky_sim_mid_motion_is_a_state_gap_fault_and_a_new_controller_needs_rearm(rig):
     rig.start_moving()
+    t_kill = time.monotonic()  # before the kill: kill() also reaps the process and its output reader
     rig.server.kill()
-    t_kill = time.monotonic()
     code, reply = rig.ctl("wait", "--timeout", "60")
     assert code == 0, reply
     s = reply["summary"]

@@ -14,6 +14,12 @@ from sim.scene import Scene, load_scene
 from supervisor.clock import Clock, SimClock
 
 
+# A real-time renderer at a higher duty cycle starved the ordinary-priority localization processes and, with
+# franky-sim's physics also real-time, ran the machine into the kernel's real-time throttling (95% of each
+# second), which stalled every real-time thread, the control tick included, for 50-300 ms.
+RENDER_DUTY = 2.5
+
+
 class SimCamera(Camera):
     """Renders what a camera at `pose_source()` (a `T_base_cam`) sees.
 
@@ -84,10 +90,11 @@ class SimCamera(Camera):
             close()
 
     def _grab(self, timeout: float) -> RawFrame:
-        # On the real clock a render takes real time: pace at what this machine sustains (a render every
-        # 1.2 render times at most) so the simulator leaves the cores to the supervisor's own work, as a
-        # real camera would; in simulated time (and whenever rendering keeps up) the configured rate.
-        self._pace(max(self.frame_period, 1.2 * self._render_s))
+        # On the real clock a render takes real time: pace at what this machine sustains while leaving it to
+        # the supervisor (a render every RENDER_DUTY render times at most: the render process, on SCHED_FIFO,
+        # takes at most 1/RENDER_DUTY of a core), as a real camera's frames cost the host little; in simulated
+        # time (and whenever rendering keeps up) the configured rate.
+        self._pace(max(self.frame_period, RENDER_DUTY * self._render_s))
         exposed = self.clock.now()  # the pose is sampled now; rendering takes real time on a real clock
         T_base_cam = np.array(self.pose_source(), dtype=float)
         t0 = time.perf_counter()
