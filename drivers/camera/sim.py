@@ -12,6 +12,8 @@ from sim.calibration_views import LensDistortion
 from sim.renderer import Renderer
 from sim.scene import Scene, load_scene
 from supervisor.clock import Clock, SimClock
+from supervisor.errors import CameraTimeout, DriverError
+from sim.faults import BACKWARDS_STEP, STALE_AGE, frame_fault
 
 
 class SimCamera(Camera):
@@ -35,6 +37,9 @@ class SimCamera(Camera):
         self._frame_index = 0
         self._render_s = 0.0  # the last render's wall time (real clock only)
         self._lens = LensDistortion(renderer.intrinsics) if lens and has_distortion(renderer.intrinsics) else None
+        self.faults = None  # a sim.faults.FaultInjector (the config's fault plan), set by from_config
+        self._fault_rng = np.random.default_rng(noise_seed)
+        self._last_exposed: float | None = None
 
     @classmethod
     def from_config(cls, cfg, *, clock: Clock, robot, scene: str | Scene | None = None, seed: int = 0,
@@ -50,8 +55,15 @@ class SimCamera(Camera):
 
             renderer = RenderProcess(scene, cfg.camera.intrinsics)
         T_flange_cam = np.array(cfg.camera.T_flange_cam, float)
-        return cls(renderer, lambda: robot.state().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
-                   noise_seed=seed)
+        # the camera sees the world from where the arm is, whatever the robot reports (an injected robot fault)
+        true_state = getattr(robot, "true_state", robot.state)
+        cam = cls(renderer, lambda: true_state().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
+                  noise_seed=seed)
+        faults = getattr(robot, "faults", None)
+        if faults is not None:  # the config's fault plan (sim/faults.py): at_angle_deg counts from the start view
+            faults.set_reference(cam.start_view()[0], T_flange_cam)
+            cam.faults = faults
+        return cam
 
     @property
     def pivot_base(self) -> np.ndarray:
@@ -75,6 +87,36 @@ class SimCamera(Camera):
             close()
 
     def _grab(self, timeout: float) -> RawFrame:
+        if self.faults is None:
+            return self._render_frame(timeout)
+        self.faults.update(None, False)  # after_s triggers and fault ends, also at rest
+        kind = self.faults.active("camera")
+        if kind == "camera_disconnect":
+            self._pace(self.frame_period)
+            raise DriverError("sim camera disconnected (injected fault)")
+        if kind == "frame_stall":
+            t_end = time.monotonic() + timeout
+            while time.monotonic() < t_end and not self.closed:  # nothing arrives; a close ends the wait
+                time.sleep(0.01)
+            raise CameraTimeout(timeout, "no frame from the sim camera (injected frame stall)")
+        raw = self._render_frame(timeout)
+        if kind is None:
+            self._last_exposed = raw.exposure_t
+            return raw
+        image, seq, exposed = raw.image, raw.device_seq, raw.exposure_t
+        if kind == "stale_timestamp":
+            exposed = exposed - STALE_AGE
+        elif kind == "camera_time_backwards":
+            exposed = (self._last_exposed if self._last_exposed is not None else exposed) - BACKWARDS_STEP
+        elif kind == "repeated_sequence":
+            self._frame_index -= 1
+            seq = self._frame_index
+        else:
+            image = frame_fault(kind, image, self._fault_rng)
+        self._last_exposed = exposed
+        return RawFrame(image, device_seq=seq, device_time=exposed, meta=raw.meta, exposure_t=exposed)
+
+    def _render_frame(self, timeout: float) -> RawFrame:
         # On the real clock a render takes real time: pace at what this machine sustains (a render every
         # 1.2 render times at most) so the simulator leaves the cores to the supervisor's own work, as a
         # real camera would; in simulated time (and whenever rendering keeps up) the configured rate.

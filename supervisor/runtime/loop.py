@@ -565,6 +565,8 @@ class SupervisorLoop:
         st = self._read_state(now)
         if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
             self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state")
+        elif now - st.t > self.stage.pose_gap + 1e-9:  # [issue-10f] no new state at all (a frozen stream)
+            self._fault(now, "state_gap", f"the newest robot state is {(now - st.t) * 1000:.1f} ms old")
         fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9
         if st.t > self._last_state_t:
             self.history.add(st.t, st.q)

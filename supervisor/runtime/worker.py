@@ -379,6 +379,8 @@ class ProcessWorker:
         self._lock = threading.Lock()
         self._free = list(range(self.max_pending))
         self._jobs: dict[int, tuple[FrameJob, int]] = {}  # key -> (job, process index)
+        self._orphans: dict[int, int] = {}  # key -> process index: an earlier run's jobs, results dropped
+        self._gen = 0  # start_run's count: a result collected across a start_run is dropped
         self._load = [0] * processes
         self._key = 0
         self._done: deque[JobResult] = deque()
@@ -425,6 +427,11 @@ class ProcessWorker:
             self._refinement.refiner = None
             self._held = []
             self._refitting = False
+            # [issue-10f] a run that halted with frames in work: their results must not reach this run
+            self._orphans.update({key: i for key, (_, i) in self._jobs.items()})
+            self._jobs.clear()
+            self._done.clear()
+            self._gen += 1
         for q in self._queues:
             q.put(("model", model))
         self._begin_refinement(model)
@@ -518,9 +525,10 @@ class ProcessWorker:
                 self._error = payload
                 continue
             with self._lock:
-                job, i = self._jobs.pop(key, (None, 0))
+                job, i = self._jobs.pop(key, None) or (None, self._orphans.pop(key, 0))
                 self._load[i] -= 1
                 self._free.append(slot)
+                gen = self._gen
             if kind == "error":
                 self._error = payload
                 continue
@@ -528,7 +536,9 @@ class ProcessWorker:
                 continue
             self._observe(job, payload)
             self.completed += 1
-            self._done.append(JobResult(job, payload, self.clock.now()))
+            with self._lock:
+                if gen == self._gen:
+                    self._done.append(JobResult(job, payload, self.clock.now()))
 
     def _observe(self, job: FrameJob, res: LocalizationResult) -> None:
         """Forward a result's matches to the refiner in process 0 (small arrays; the queue's feeder thread
