@@ -38,7 +38,6 @@ import threading
 import numpy as np
 
 from supervisor.config import FAULT_KINDS, FaultSpec
-from supervisor.geometry import relative_angle
 
 STALE_AGE = 0.5  # s: how old a stale_timestamp frame claims to be
 BACKWARDS_STEP = 0.05  # s: how far robot_time_backwards / camera_time_backwards go back
@@ -60,15 +59,16 @@ class FaultInjector:
         self._index = 0  # the current entry
         self._current_since = clock.now()
         self._fired_t: float | None = None  # when the current entry fired
-        self._R_ref: np.ndarray | None = None  # camera rotation at the scene's start view
-        self._R_flange_cam = np.eye(3)
+        self._A: np.ndarray | None = None  # from the camera rotation at the scene's start view, see set_reference
         self._last_angle: float | None = None
         self.fired: list[tuple[str, float]] = []
 
     def set_reference(self, T_base_cam_start: np.ndarray, T_flange_cam: np.ndarray) -> None:
         """The view at_angle_deg is measured from (the sim camera gives its scene's start view)."""
-        self._R_ref = np.asarray(T_base_cam_start, float)[:3, :3].copy()
-        self._R_flange_cam = np.asarray(T_flange_cam, float)[:3, :3].copy()
+        R_ref = np.asarray(T_base_cam_start, float)[:3, :3]
+        R_flange_cam = np.asarray(T_flange_cam, float)[:3, :3]
+        # trace(R_ref^T R_flange R_flange_cam) = sum(A * R_flange) with A = R_ref R_flange_cam^T: one product a tick
+        self._A = R_ref @ R_flange_cam.T
 
     @property
     def needs_angle(self) -> bool:
@@ -92,8 +92,9 @@ class FaultInjector:
                 fire = False
                 if f.after_s is not None:
                     fire = now - self._current_since >= f.after_s
-                elif T_base_flange is not None and self._R_ref is not None:
-                    angle = relative_angle(self._R_ref, np.asarray(T_base_flange)[:3, :3] @ self._R_flange_cam)
+                elif T_base_flange is not None and self._A is not None:
+                    c = (float((self._A * T_base_flange[:3, :3]).sum()) - 1.0) / 2.0
+                    angle = math.acos(min(1.0, max(-1.0, c)))
                     last, self._last_angle = self._last_angle, angle
                     fire = moving and last is not None and last < f.at_angle <= angle
                 if fire:

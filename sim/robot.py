@@ -26,6 +26,8 @@ from supervisor.errors import JointLimitError, KinematicsError, RobotFault
 from supervisor.motion.joint_move import REL_V, TOL, check_joint_plan, plan_joint_move, sample_ruckig
 from sim.faults import TICK_DELAY
 
+ANGLE_EVERY = 4  # ticks: how often an at_angle_deg trigger is evaluated (4 ms: 0.04 deg at 10 deg/s)
+
 _TOL = TOL  # absolute slack on position (rad) and velocity (rad/s) checks (shared with joint_move)
 _REL_V = REL_V  # relative slack on the velocity limit
 _REL_A = 1e-6  # relative slack on the acceleration limit (finite differences of a sampled plan)
@@ -141,8 +143,6 @@ class SimRobot:
             self.fault = str(exc)
             raise
         q_cmd = np.array(q_cmd, dtype=float)
-        if self.faults is not None:
-            self._prev_state = self.true_state()  # what a state gap starting at this tick keeps reporting
         self._dq = (q_cmd - self._q) / self.dt
         self._q = q_cmd
         self._T_flange = None
@@ -161,12 +161,17 @@ class SimRobot:
     def _inject(self) -> None:
         """Advance the fault plan at this tick; a standing state_gap freezes the reported state."""
         f = self.faults
-        was_gap = f.active("robot") == "state_gap"
-        f.update(self.true_state().T_base_flange if f.needs_angle else None, bool(np.any(self._dq)))
+        T = None
+        if f.needs_angle and self._seq % ANGLE_EVERY == 0:
+            if self._T_flange is None:
+                self._T_flange = self.kin.fk(self._q, "flange")
+            T = self._T_flange
+        f.update(T, bool(self._dq.any()))
         kind = f.active("robot")
-        if kind == "state_gap" and not was_gap:
-            self._frozen = self._prev_state
-        elif kind != "state_gap":
+        if kind == "state_gap":
+            if self._frozen is None:  # the state at the gap's first tick, reported until it ends
+                self._frozen = self.true_state()
+        else:
             self._frozen = None
         if kind == "cpu_starved" and self.clock is not None:
             self.clock.sleep(TICK_DELAY)
