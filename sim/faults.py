@@ -22,7 +22,7 @@ angle while the arm moves away from the start view (a setup move back to the sta
       repeated_sequence        the device sequence number does not advance
       camera_time_backwards    each frame stamped 50 ms before the previous one
       black_frame, saturated_frame   all 0 / all 255
-      corrupted_frame          the lower half of the image is random bytes (a torn transfer)
+      corrupted_frame          random bytes of the right size (a garbled transfer)
       wrong_size_frame         a half-size image
 
 Every firing and every end is printed on stderr with the monotonic time (`sim fault: fired KIND t=...`),
@@ -154,10 +154,7 @@ def frame_fault(kind: str, image: np.ndarray, rng: np.random.Generator) -> np.nd
     if kind == "saturated_frame":
         return np.full_like(image, 255)
     if kind == "corrupted_frame":
-        out = image.copy()
-        h = out.shape[0] // 2
-        out[h:] = rng.integers(0, 256, size=out[h:].shape, dtype=np.uint8)
-        return out
+        return rng.integers(0, 256, size=image.shape, dtype=np.uint8)
     if kind == "wrong_size_frame":
         return np.ascontiguousarray(image[: image.shape[0] // 2, : image.shape[1] // 2])
     raise AssertionError(kind)

@@ -29,9 +29,9 @@ class Row:
     expect: tuple[str, ...]  # halt reasons that name this fault (a prefix "gate" means: not a fault, the gate's)
     stage: str = "explore"
     trigger: str = "at_angle_deg: 1.0"  # mid-motion: during the first move (stop-and-go: 0 -> 1.5 deg)
-    duration: float = 2.5
+    duration: float = 3.5  # s: a standing fault outlasts rearm's self-check, which waits up to 2 s for it to clear
+    settle: float = 0.0  # s after firing before a standing fault shows (the camera's frames count as old after 1 s)
     stands: str | None = None  # what `rearm` says while the fault stands (None: too short to see)
-    settle: float = 0.0  # s after firing before a standing fault shows (camera frames count as old after 1 s)
     sweep: str = "6"
 
 
@@ -41,10 +41,10 @@ LOAD_FAULTS = ("fault:camera_timeout", "fault:localization_timeout", "fault:over
 
 ROWS = [
     # camera disconnects mid-motion: controlled stop, stays stopped when the camera returns
-    Row("camera_disconnect", ("fault:camera_fault",), duration=3.0, stands="camera's newest frame", settle=1.3),
+    Row("camera_disconnect", ("fault:camera_fault",), duration=4.5, stands="camera's newest frame", settle=1.2),
     # frame stall / stale timestamp / repeated sequence: stop (continuous sampling takes every frame while
     # moving, so a stale or backwards stamp is seen as such; stop-and-go would wait it out as a camera timeout)
-    Row("frame_stall", ("fault:camera_timeout",), duration=3.0, stands="camera's newest frame", settle=1.3),
+    Row("frame_stall", ("fault:camera_timeout",), duration=4.5, stands="camera's newest frame", settle=1.2),
     Row("stale_timestamp", ("fault:stale_frame",), "explore_continuous", "at_angle_deg: 3.0", 1.0),
     Row("repeated_sequence", ("fault:stale_frame",), "explore_continuous", "at_angle_deg: 3.0", 1.0),
     Row("camera_time_backwards", ("fault:stale_frame",), "explore_continuous", "at_angle_deg: 3.0", 1.0),
@@ -129,6 +129,8 @@ def _arm(d: DaemonProc, timeout: float = 15.0) -> dict:
     t_end = time.monotonic() + timeout
     while True:
         st = d.status()
+        if st["state"] == "armed":
+            return {"ok": True, "state": "armed"}
         reply = d.req({"cmd": "rearm" if st["state"] == "halted" else "arm"})
         if reply["ok"] or time.monotonic() > t_end:
             return reply
