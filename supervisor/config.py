@@ -130,6 +130,7 @@ def load_config(path: str | Path | None = None) -> Config:
         file=str(path),
         sha256=hashlib.sha256(raw).hexdigest(),
     )
+    _check_faults_on_sim(cfg, root)
     if cfg.default_stage not in cfg.stages:
         raise root.error("default_stage", f"expected one of the stages ({', '.join(cfg.stages)}), "
                                           f"got {cfg.default_stage!r}")
@@ -171,14 +172,17 @@ def _faults(root: Node) -> tuple[FaultSpec, ...]:
         duration = n.optional_number("duration_s", min=0.0, max=86400.0, min_exclusive=True)
         n.done()
         out.append(FaultSpec(kind, None if angle is None else math.radians(angle), after, duration))
-    if out:
-        drivers = {"robot": root.data.get("robot", {}).get("driver"), "camera": root.data.get("camera", {}).get("driver")}
-        for part, driver in drivers.items():
-            if driver != "sim":
-                raise root.error("faults", f"fault injection is for the simulator only: it needs robot.driver sim "
-                                           f"and camera.driver sim (got {part}.driver {driver}); faults are never "
-                                           f"injected on hardware")
     return tuple(out)
+
+
+def _check_faults_on_sim(cfg: Config, root: Node) -> None:
+    if not cfg.faults:
+        return
+    for part, driver in (("robot", cfg.robot.driver), ("camera", cfg.camera.driver)):
+        if driver != "sim":
+            raise root.error("faults", f"fault injection is for the simulator only: it needs robot.driver sim and "
+                                       f"camera.driver sim (got {part}.driver {driver}); faults are never injected "
+                                       f"on hardware")
 
 
 def _stages(root: Node) -> Mapping[str, StageConfig]:

@@ -95,9 +95,11 @@ class SimCamera(Camera):
             self._pace(self.frame_period)
             raise DriverError("sim camera disconnected (injected fault)")
         if kind == "frame_stall":
+            if isinstance(self.clock, SimClock):
+                self.clock.sleep(timeout)
             t_end = time.monotonic() + timeout
-            while time.monotonic() < t_end and not self.closed:  # nothing arrives; a close ends the wait
-                time.sleep(0.01)
+            while not isinstance(self.clock, SimClock) and time.monotonic() < t_end and not self.closed:
+                time.sleep(0.01)  # nothing arrives; a close ends the wait
             raise CameraTimeout(timeout, "no frame from the sim camera (injected frame stall)")
         raw = self._render_frame(timeout)
         if kind is None:
