@@ -26,7 +26,8 @@ from pathlib import Path
 from supervisor.daemon.client import ControlError, request
 
 SUPERVISOR = str(Path(sys.executable).with_name("supervisor"))
-PATIENT = {"frame_timeout_ms: 200": "frame_timeout_ms: 1000", "localization_timeout_ms: 1000": "localization_timeout_ms: 5000",
+PATIENT = {"frame_timeout_ms: 200": "frame_timeout_ms: 1000",
+           "localization_timeout_ms: 1000": "localization_timeout_ms: 5000",
            "pose_gap_ms: 20": "pose_gap_ms: 200\n    overrun_budget: 50"}
 
 
@@ -142,9 +143,11 @@ def main() -> int:
                 print(f"  azimuth {row['azimuth_deg']:g}: {row['daemon'][-1]}", flush=True)
     finally:
         d.close()
-    result = {"patient": args.patient, "load_average_before": load_before, "load_average_after": os.getloadavg(), "rows": rows}
+    result = {"patient": args.patient, "load_average_before": load_before, "load_average_after": os.getloadavg(),
+              "rows": rows}
     (out / "daemon_vs_dryrun.json").write_text(json.dumps(result, indent=2))
-    head = f"{'az':>5} | {'source':<12} | {'halt deg':>8} | {'reason':<22} | {'allowed deg':>11} | {'overshoot deg':>13}"
+    head = (f"{'az':>5} | {'source':<12} | {'halt deg':>8} | {'reason':<22} | {'allowed deg':>11} | "
+            f"{'overshoot deg':>13}")
     print(head)
     print("-" * len(head))
     for row in rows:
@@ -152,8 +155,8 @@ def main() -> int:
             if "error" in s:
                 print(f"{row['azimuth_deg']:>5g} | {name:<12} | refused: {s['error']}")
                 continue
-            print(f"{row['azimuth_deg']:>5g} | {name:<12} | {_fmt(s['halt_angle_deg']):>8} | {s['halt_reason']:<22} | "
-                  f"{_fmt(s['theta_allowed_deg']):>11} | {_fmt(s['max_overshoot_deg']):>13}")
+            print(f"{row['azimuth_deg']:>5g} | {name:<12} | {_fmt(s['halt_angle_deg']):>8} | "
+                  f"{s['halt_reason']:<22} | {_fmt(s['theta_allowed_deg']):>11} | {_fmt(s['max_overshoot_deg']):>13}")
     print(f"load average before {load_before[0]:.1f}, after {result['load_average_after'][0]:.1f}; "
           f"wrote {out / 'daemon_vs_dryrun.json'}")
     return 0

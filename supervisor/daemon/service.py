@@ -140,7 +140,8 @@ class Daemon:
         now = self._now()
         try:
             st = self.drivers.robot.state()
-            bad = state_problem(st, self.drivers.kin.q_min, self.drivers.kin.q_max, None)  # [issue-10f] NaN, limits, ...
+            # [issue-10f] an untrusted state (NaN, outside the limits, not a rigid pose) is not fresh either
+            bad = state_problem(st, self.drivers.kin.q_min, self.drivers.kin.q_max, None)
             if bad:
                 problems.append(f"robot state: {bad}")
             elif now - st.t > STATE_MAX_AGE:
