@@ -24,6 +24,9 @@ from supervisor.arm.state import RobotState
 from supervisor.clock import Clock, SimClock
 from supervisor.errors import JointLimitError, KinematicsError, RobotFault
 from supervisor.motion.joint_move import REL_V, TOL, check_joint_plan, plan_joint_move, sample_ruckig
+from sim.faults import TICK_DELAY
+
+ANGLE_EVERY = 4  # ticks: how often an at_angle_deg trigger is evaluated (4 ms: 0.04 deg at 10 deg/s)
 
 _TOL = TOL  # absolute slack on position (rad) and velocity (rad/s) checks (shared with joint_move)
 _REL_V = REL_V  # relative slack on the velocity limit
@@ -56,7 +59,7 @@ class SimRobot:
     """
 
     def __init__(self, kin: PandaKinematics, q0: np.ndarray, dt: float = 0.001, clock: Clock | None = None,
-                 *, check_acceleration: bool = False) -> None:
+                 *, check_acceleration: bool = False, faults=None) -> None:
         q0 = _joints_within_limits(kin, q0, "q0", "start position")
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a finite number > 0, got {dt}")
@@ -70,9 +73,18 @@ class SimRobot:
         self._t = clock.now() if clock is not None else 0.0
         self._T_flange: np.ndarray | None = None  # FK cache for the current q
         self.fault: str | None = None
+        self.faults = faults  # a sim.faults.FaultInjector: what this robot reports under the config's fault plan
+        self._frozen: RobotState | None = None  # the state a standing state_gap fault keeps reporting
 
     # -- state -------------------------------------------------------------------------
     def state(self) -> RobotState:
+        """What the robot reports: its true state, or what a standing injected fault makes of it."""
+        st = self.true_state()
+        if self.faults is None:
+            return st
+        return self.faults.robot_state(st, self._frozen, self.kin.q_max)
+
+    def true_state(self) -> RobotState:
         """Time, tick counter, joints and flange pose now (arrays are copies).
 
         On a real clock an arm at rest holds its position by itself and keeps reporting (time now);
@@ -142,7 +154,27 @@ class SimRobot:
             self._t = self.clock.now()  # the real clock: the tick happens now (the caller paces)
         else:
             self._t = self._seq * self.dt  # no accumulated rounding over long runs
+        if self.faults is not None:
+            self._inject()
         return self.state()
+
+    def _inject(self) -> None:
+        """Advance the fault plan at this tick; a standing state_gap freezes the reported state."""
+        f = self.faults
+        T = None
+        if f.needs_angle and self._seq % ANGLE_EVERY == 0:
+            if self._T_flange is None:
+                self._T_flange = self.kin.fk(self._q, "flange")
+            T = self._T_flange
+        f.update(T, bool(self._dq.any()))
+        kind = f.active("robot")
+        if kind == "state_gap":
+            if self._frozen is None:  # the state at the gap's first tick, reported until it ends
+                self._frozen = self.true_state()
+        else:
+            self._frozen = None
+        if kind == "cpu_starved" and self.clock is not None:
+            self.clock.sleep(TICK_DELAY)
 
     def hold(self, ticks: int = 1) -> RobotState:
         """Command the current position for `ticks` ticks (time passes, nothing moves)."""

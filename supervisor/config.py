@@ -100,6 +100,7 @@ class Config:
     default_stage: str = ""
     can: CanSettings | None = None  # the CAN side channel (`can:`; absent or null: none)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
+    faults: tuple[FaultSpec, ...] = ()  # `faults:` simulator fault injection (sim drivers only; default none)
 
     def stage(self, name: str | None = None) -> StageConfig:
         """The named stage (default: `default_stage`); an unknown name is a ConfigError."""
@@ -125,14 +126,63 @@ def load_config(path: str | Path | None = None) -> Config:
         default_stage=root.string("default_stage"),
         can=parse_can(root, path),
         recording=_recording(root.child("recording", {})),
+        faults=_faults(root),
         file=str(path),
         sha256=hashlib.sha256(raw).hexdigest(),
     )
+    _check_faults_on_sim(cfg, root)
     if cfg.default_stage not in cfg.stages:
         raise root.error("default_stage", f"expected one of the stages ({', '.join(cfg.stages)}), "
                                           f"got {cfg.default_stage!r}")
     root.done()
     return cfg
+
+
+# -- `faults:` fault injection for the simulator drivers (issue 10) ------------------------------------
+# A plan of faults the sim robot and the sim camera execute (sim/faults.py), for the daemon's fault tests.
+# Never on hardware: a plan is refused unless both drivers are the simulator's.
+FAULT_KINDS = {  # kind -> the sim driver that executes it
+    "camera_disconnect": "camera", "frame_stall": "camera", "stale_timestamp": "camera",
+    "repeated_sequence": "camera", "camera_time_backwards": "camera", "black_frame": "camera",
+    "saturated_frame": "camera", "corrupted_frame": "camera", "wrong_size_frame": "camera",
+    "state_gap": "robot", "nan_pose": "robot", "inf_joints": "robot", "non_orthonormal_rotation": "robot",
+    "joints_out_of_limits": "robot", "robot_time_backwards": "robot", "cpu_starved": "robot",
+}
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """One injected fault: fires once, when its trigger is met (entries fire in order: an entry's trigger
+    counts only once the previous entry has ended), and stands for `duration_s` (None: from then on)."""
+
+    kind: str
+    at_angle: float | None = None  # rad: the camera's viewing angle from the scene's start view, reached moving away
+    after_s: float | None = None  # s after the entry became current (the first: when the drivers opened)
+    duration_s: float | None = None
+
+
+def _faults(root: Node) -> tuple[FaultSpec, ...]:
+    out = []
+    for n in root.mappings("faults"):
+        kind = n.string("kind", choices=tuple(FAULT_KINDS))
+        angle, after = n.optional_number("at_angle_deg", min=0.0, max=180.0, min_exclusive=True), \
+            n.optional_number("after_s", min=0.0, max=86400.0)
+        if (angle is None) == (after is None):
+            raise n.error("at_angle_deg", "give exactly one trigger: at_angle_deg or after_s")
+        duration = n.optional_number("duration_s", min=0.0, max=86400.0, min_exclusive=True)
+        n.done()
+        out.append(FaultSpec(kind, None if angle is None else math.radians(angle), after, duration))
+    return tuple(out)
+
+
+def _check_faults_on_sim(cfg: Config, root: Node) -> None:
+    if not cfg.faults:
+        return
+    for part, driver in (("robot", cfg.robot.driver), ("camera", cfg.camera.driver)):
+        if driver != "sim":
+            raise root.error("faults", f"fault injection is for the simulator only: it needs robot.driver sim and "
+                                       f"camera.driver sim (got {part}.driver {driver}); faults are never injected "
+                                       f"on hardware")
 
 
 def _stages(root: Node) -> Mapping[str, StageConfig]:

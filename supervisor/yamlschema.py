@@ -483,6 +483,15 @@ class Node:
             parent._seen.add(name)
             yield name, parent.child(name)
 
+    def mappings(self, key: str) -> list[Node]:
+        """The list of mappings under `key` as Nodes (`key[0]`, `key[1]`, ...); absent or null: no entries."""
+        value = self._get(key, None)
+        if value is None:
+            return []
+        if not isinstance(value, list):
+            raise self.error(key, f"expected a list of mappings, got {_type_name(value)}")
+        return [Node(v, self.file, f"{self._key(key)}[{i}]") for i, v in enumerate(value)]
+
     def done(self) -> None:
         """Reject keys that no reader asked for."""
         unknown = [k for k in self.data if k not in self._seen]

@@ -122,12 +122,11 @@ class MisbehavingRobot(Robot):
     """Forwards to a real robot driver; after `after` commands, misbehaves as `mode` says."""
 
     MODES = ("command_raises", "state_raises", "nan_joints", "inf_joints", "six_joints", "time_back",
-             "joint_out_of_limit", "rotation_not_orthonormal", "stall", "frozen")
+             "joint_out_of_limit", "rotation_not_orthonormal", "stall")
 
     def __init__(self, inner: Robot, mode: str, after: int) -> None:
         assert mode in self.MODES, mode
         self.inner, self.mode, self.after, self.n = inner, mode, after, 0
-        self._frozen = None
 
     @property
     def control_period(self) -> float:
@@ -138,10 +137,6 @@ class MisbehavingRobot(Robot):
         return self.n >= self.after
 
     def state(self):
-        if self.mode == "frozen" and self.active:  # a controller gone: its last state, over and over
-            if self._frozen is None:
-                self._frozen = self.inner.state()
-            return self._frozen
         st = self.inner.state()
         if not self.active:
             return st

@@ -5,7 +5,6 @@ mid-motion trips `supervisor can monitor`, running in another process, within 10
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -15,84 +14,17 @@ from pathlib import Path
 
 import pytest
 
-from supervisor.daemon.client import request
-from supervisor.paths import DEFAULT_CONFIG
-from test_daemon import START_TIMEOUT, Notify
+from daemon_harness import START_TIMEOUT, SUPERVISOR, DaemonProc, config_with
 
-SUPERVISOR = str(Path(sys.executable).with_name("supervisor"))
-NETNS_SETUP = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
 ATTEMPTS = 5  # runs that may fault at their first tick on a loaded machine (see the report) before one moves
 GROUP = "239.74.163.12"  # IPv4 multicast group, routed to the namespace's loopback only
-
-
-def _config(tmp: Path, can: str) -> Path:
-    p = tmp / "cfg.yaml"
-    p.write_text(DEFAULT_CONFIG.read_text() + "\n" + can)
-    return p
-
-
-class Daemon:
-    def __init__(self, tmp: Path, cfg: Path, netns: bool) -> None:
-        self.tmp, self.cfg = tmp, cfg
-        self.sock = tmp / "run" / "control.sock"
-        self.logs = tmp / "logs"
-        self.notify = Notify(tmp / "notify.sock")
-        env = {**os.environ, "NOTIFY_SOCKET": str(self.notify.path), "WATCHDOG_USEC": "1000000"}
-        cmd = [SUPERVISOR, "--config", str(cfg), "daemon", "--socket", str(self.sock), "--log-dir", str(self.logs)]
-        if netns:  # exec: the pid is the daemon's, in a namespace of its own
-            cmd = ["unshare", "-n", "sh", "-c", f"{NETNS_SETUP} && exec " + " ".join(cmd)]
-        self.out = open(tmp / "daemon.out", "w")  # noqa: SIM115
-        self.proc = subprocess.Popen(cmd, env=env, stdout=self.out, stderr=subprocess.STDOUT)
-        self.children: list[int] = []
-
-    def req(self, obj: dict, timeout: float = 200.0) -> dict:
-        return request(self.sock, obj, timeout)
-
-    def wait_state(self, state: str, timeout: float = 60.0) -> bool:
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            if self.req({"cmd": "status"})["state"] == state:
-                return True
-            time.sleep(0.02)
-        return False
-
-    def in_netns(self, *cmd: str) -> list[str]:
-        return ["nsenter", "-t", str(self.proc.pid), "-n", *cmd]
-
-    def events(self) -> list[dict]:
-        return [json.loads(x) for x in (self.logs / "events.jsonl").read_text().splitlines()]
-
-    def note_children(self) -> None:
-        """The daemon's child processes (render, localization): ended by pid after a SIGKILL."""
-        path = Path(f"/proc/{self.proc.pid}/task")
-        for task in path.iterdir():
-            try:
-                self.children += [int(x) for x in (task / "children").read_text().split()]
-            except FileNotFoundError:  # a thread that ended meanwhile
-                pass
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
-        for pid in self.children:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        self.out.close()
-        self.notify.sock.close()
 
 
 @pytest.mark.slow
 def test_bus_unavailable_at_start_the_daemon_starts_and_refuses_to_arm(tmp_path):
     # SocketCAN cannot be opened on these machines (no PF_CAN): the daemon must start and say why it will not arm
-    cfg = _config(tmp_path, "can:\n  interface: socketcan\n  channel: vcan0\n")
-    d = Daemon(tmp_path, cfg, netns=False)
+    cfg = config_with(tmp_path, "can:\n  interface: socketcan\n  channel: vcan0\n")
+    d = DaemonProc(tmp_path, config=cfg, netns=False)
     try:
         assert d.notify.wait_for("READY", "1", START_TIMEOUT), (tmp_path / "daemon.out").read_text()
         st = d.req({"cmd": "status"})
@@ -106,14 +38,14 @@ def test_bus_unavailable_at_start_the_daemon_starts_and_refuses_to_arm(tmp_path)
         d.stop()
 
 
-def _send_external_stop(d: Daemon, cfg: Path) -> None:
+def _send_external_stop(d: DaemonProc, cfg: Path) -> None:
     code = ("import sys; from supervisor.config import load_config; from supervisor.can.channel import open_bus;"
             "from supervisor.can.codec import Codec; c = load_config(sys.argv[1]).can; b = open_bus(c);"
             "fid, data = Codec.from_settings(c).encode('external_stop', {'Stop': 1}); b.send(fid, data); b.close()")
     subprocess.run(d.in_netns(sys.executable, "-c", code, str(cfg)), check=True, timeout=60)
 
 
-def _moving(d: Daemon, settle: float) -> bool:
+def _moving(d: DaemonProc, settle: float) -> bool:
     """(Re-)arm, start an arc, and report whether it is still moving `settle` s later."""
     st = d.req({"cmd": "status"})
     assert d.req({"cmd": "rearm" if st["state"] == "halted" else "arm"})["ok"]
@@ -130,8 +62,8 @@ def _moving(d: Daemon, settle: float) -> bool:
 
 @pytest.mark.slow
 def test_external_stop_latches_and_sigkill_trips_the_monitor_in_another_process(tmp_path):
-    cfg = _config(tmp_path, f"can:\n  interface: udp_multicast\n  channel: {GROUP}\n")
-    d = Daemon(tmp_path, cfg, netns=True)
+    cfg = config_with(tmp_path, f"can:\n  interface: udp_multicast\n  channel: {GROUP}\n")
+    d = DaemonProc(tmp_path, config=cfg, netns=True)
     mon = None
     mon_out = tmp_path / "monitor.out"
     try:
@@ -197,7 +129,7 @@ def test_a_bus_fault_is_an_alarm_and_an_event_and_refuses_motion_until_the_bus_r
     from drivers.bus.pythoncan import PythonCanBus
     from supervisor.daemon.service import Daemon as Service
 
-    cfg = _config(tmp_path, "can:\n  interface: virtual\n  channel: fullcell\n")
+    cfg = config_with(tmp_path, "can:\n  interface: virtual\n  channel: fullcell\n")
     d = Service(cfg, log_dir=tmp_path / "logs")  # in this process: the virtual bus is in-process
     th = threading.Thread(target=d.serve, daemon=True)
     th.start()

@@ -9,114 +9,12 @@ import signal
 import socket
 import stat
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from supervisor.daemon.client import request
-
-SUPERVISOR = str(Path(sys.executable).with_name("supervisor"))
-START_TIMEOUT = 180.0  # s: drivers, render process, capture thread (a loaded machine is slow)
-
-
-class Notify:
-    """A systemd stand-in: the datagram socket a Type=notify service reports to."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind(str(path))
-        self.sock.settimeout(0.2)
-        self.messages: list[tuple[float, dict[str, str]]] = []
-
-    def pump(self, seconds: float = 0.0) -> None:
-        t_end = time.monotonic() + seconds
-        while True:
-            try:
-                data = self.sock.recv(4096)
-            except TimeoutError:
-                if time.monotonic() >= t_end:
-                    return
-                continue
-            fields = dict(line.split("=", 1) for line in data.decode().splitlines() if "=" in line)
-            self.messages.append((time.monotonic(), fields))
-            if time.monotonic() >= t_end:
-                return
-
-    def wait_for(self, key: str, value: str | None = None, timeout: float = START_TIMEOUT) -> bool:
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            if any(key in m and (value is None or m[key] == value) for _, m in self.messages):
-                return True
-            self.pump(0.2)
-        return False
-
-    def count(self, key: str, since: float = 0.0) -> int:
-        return sum(1 for t, m in self.messages if key in m and t >= since)
-
-
-class DaemonProc:
-    def __init__(self, tmp: Path, extra_env: dict[str, str] | None = None, config: Path | None = None) -> None:
-        self.tmp = tmp
-        self.sock = tmp / "run" / "control.sock"
-        self.logs = tmp / "logs"
-        self.notify = Notify(tmp / "notify.sock")
-        env = {**os.environ, "NOTIFY_SOCKET": str(tmp / "notify.sock"), "WATCHDOG_USEC": "1000000",
-               **(extra_env or {})}
-        self.out = open(tmp / "daemon.out", "w")  # noqa: SIM115
-        args = [SUPERVISOR, "daemon", "--socket", str(self.sock), "--log-dir", str(self.logs)]
-        if config is not None:
-            args += ["--config", str(config)]
-        self.proc = subprocess.Popen(args, env=env, stdout=self.out, stderr=subprocess.STDOUT)
-
-    def ctl(self, *args: str, timeout: float = 200.0) -> tuple[int, dict]:
-        r = subprocess.run([SUPERVISOR, "ctl", "--socket", str(self.sock), *args], capture_output=True, text=True,
-                           timeout=timeout)
-        return r.returncode, json.loads(r.stdout) if r.stdout.strip().startswith("{") else {"stderr": r.stderr}
-
-    def req(self, obj: dict, timeout: float = 30.0) -> dict:
-        return request(self.sock, obj, timeout)
-
-    def wait_state(self, state: str, timeout: float = 60.0) -> bool:
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            if self.req({"cmd": "status"})["state"] == state:
-                return True
-            time.sleep(0.05)
-        return False
-
-    def start_moving(self, attempts: int = 3) -> None:
-        """Arm and run a continuous arc until it is seen moving (a loaded machine may fault a run at once:
-        a camera timeout is a correct, latched halt, but then there is nothing moving to stop; rearm, retry)."""
-        for _ in range(attempts):
-            st = self.req({"cmd": "status"})
-            if st["state"] == "halted":
-                assert self.ctl("rearm")[0] == 0
-            elif st["state"] == "idle":
-                assert self.ctl("arm")[0] == 0
-            assert self.ctl("run", "--azimuth", "90")[0] == 0
-            if self.wait_state("moving", 20):
-                time.sleep(0.5)
-                if self.req({"cmd": "status"})["state"] == "moving":
-                    return
-            self.ctl("wait", "--timeout", "60")
-        raise AssertionError(f"no run stayed moving in {attempts} attempts: {self.req({'cmd': 'status'})}")
-
-    def events(self) -> list[dict]:
-        return [json.loads(x) for x in (self.logs / "events.jsonl").read_text().splitlines()]
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
-        self.out.close()
-        self.notify.sock.close()
+from daemon_harness import SUPERVISOR, DaemonProc
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,7 @@ if _MISSING:
     pytest.skip(f"{', '.join(_MISSING)} not installed", allow_module_level=True)
 
 from sim.fci_server import FciServer  # noqa: E402
-from test_daemon import DaemonProc  # noqa: E402
+from daemon_harness import DaemonProc  # noqa: E402
 
 HOST = "127.0.0.81"
 ROOT = Path(__file__).resolve().parents[1]

@@ -52,7 +52,6 @@ def test_boundary_of_the_geometric_decay_is_respected():
     ("joint_out_of_limit", "bad_state"),
     ("rotation_not_orthonormal", "bad_state"),
     ("stall", "state_gap"),
-    ("frozen", "state_gap"),  # the state stops changing (franky's cached sample of a dead controller)
 ])
 def test_a_misbehaving_robot_is_a_latched_fault_while_moving(mode, kind):
     rig = build_loop(robot_wrap=lambda r: MisbehavingRobot(r, mode, MOVING_AFTER))
@@ -226,7 +225,8 @@ def test_on_the_real_clock_a_slow_fit_runs_off_the_tick(threaded):
     from supervisor.runtime.loop import ThreadFits
 
     clock = MonotonicClock()
-    st = stage(hard_limit=4.5 * DEG, sampling="stop_and_go", overrun_budget=1000)
+    # no overrun or state-gap verdicts here: a loaded machine's stalls are not what this test is about
+    st = stage(hard_limit=4.5 * DEG, sampling="stop_and_go", overrun_budget=1000, pose_gap=5.0, frame_timeout=5.0)
     pacer = TickPacer(clock, 0.001, st.overrun_budget)
     rig = build_loop(st, clock=clock, pacer=pacer, camera=PlainCamera(clock))
     slow = rig.loop.predictor = _SlowPredictor(rig.loop.predictor)

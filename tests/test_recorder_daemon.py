@@ -11,7 +11,7 @@ import pytest
 
 from supervisor.dataset.format import Dataset
 from supervisor.paths import DEFAULT_CONFIG
-from test_daemon import SUPERVISOR, DaemonProc
+from daemon_harness import SUPERVISOR, DaemonProc
 
 
 def _patient_config(tmp_path):

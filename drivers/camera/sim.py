@@ -12,6 +12,8 @@ from sim.calibration_views import LensDistortion
 from sim.renderer import Renderer
 from sim.scene import Scene, load_scene
 from supervisor.clock import Clock, SimClock
+from supervisor.errors import CameraTimeout, DriverError
+from sim.faults import BACKWARDS_STEP, STALE_AGE, frame_fault
 
 
 # A real-time renderer at a higher duty cycle starved the ordinary-priority localization processes and, with
@@ -41,6 +43,9 @@ class SimCamera(Camera):
         self._frame_index = 0
         self._render_s = 0.0  # the last render's wall time (real clock only)
         self._lens = LensDistortion(renderer.intrinsics) if lens and has_distortion(renderer.intrinsics) else None
+        self.faults = None  # a sim.faults.FaultInjector (the config's fault plan), set by from_config
+        self._fault_rng = np.random.default_rng(noise_seed)
+        self._last_exposed: float | None = None
 
     @classmethod
     def from_config(cls, cfg, *, clock: Clock, robot, scene: str | Scene | None = None, seed: int = 0,
@@ -56,8 +61,11 @@ class SimCamera(Camera):
 
             renderer = RenderProcess(scene, cfg.camera.intrinsics)
         T_flange_cam = np.array(cfg.camera.T_flange_cam, float)
+        true_state = getattr(robot, "true_state", None)
         recent = getattr(robot, "recent_state", None)
-        if recent is not None and not isinstance(clock, SimClock):
+        if true_state is not None:
+            read = true_state  # the camera sees the world from where the arm is, whatever the robot reports
+        elif recent is not None and not isinstance(clock, SimClock):
             # while the control tick reads the robot every tick, its newest state (at most 1.5 ticks old)
             max_age = 1.5 * robot.control_period
 
@@ -65,8 +73,13 @@ class SimCamera(Camera):
                 return recent(max_age)
         else:
             read = robot.state
-        return cls(renderer, lambda: read().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
-                   noise_seed=seed)
+        cam = cls(renderer, lambda: read().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
+                  noise_seed=seed)
+        faults = getattr(robot, "faults", None)
+        if faults is not None:  # the config's fault plan (sim/faults.py): at_angle_deg counts from the start view
+            faults.set_reference(cam.start_view()[0], T_flange_cam)
+            cam.faults = faults
+        return cam
 
     @property
     def pivot_base(self) -> np.ndarray:
@@ -90,6 +103,38 @@ class SimCamera(Camera):
             close()
 
     def _grab(self, timeout: float) -> RawFrame:
+        if self.faults is None:
+            return self._render_frame(timeout)
+        self.faults.update(None, False)  # after_s triggers and fault ends, also at rest
+        kind = self.faults.active("camera")
+        if kind == "camera_disconnect":
+            self._pace(self.frame_period)
+            raise DriverError("sim camera disconnected (injected fault)")
+        if kind == "frame_stall":
+            if isinstance(self.clock, SimClock):
+                self.clock.sleep(timeout)
+            t_end = time.monotonic() + timeout
+            while not isinstance(self.clock, SimClock) and time.monotonic() < t_end and not self.closed:
+                time.sleep(0.01)  # nothing arrives; a close ends the wait
+            raise CameraTimeout(timeout, "no frame from the sim camera (injected frame stall)")
+        raw = self._render_frame(timeout)
+        if kind is None:
+            self._last_exposed = raw.exposure_t
+            return raw
+        image, seq, exposed = raw.image, raw.device_seq, raw.exposure_t
+        if kind == "stale_timestamp":
+            exposed = exposed - STALE_AGE
+        elif kind == "camera_time_backwards":
+            exposed = (self._last_exposed if self._last_exposed is not None else exposed) - BACKWARDS_STEP
+        elif kind == "repeated_sequence":
+            self._frame_index -= 1
+            seq = self._frame_index
+        else:
+            image = frame_fault(kind, image, self._fault_rng)
+        self._last_exposed = exposed
+        return RawFrame(image, device_seq=seq, device_time=exposed, meta=raw.meta, exposure_t=exposed)
+
+    def _render_frame(self, timeout: float) -> RawFrame:
         # On the real clock a render takes real time: pace at what this machine sustains while leaving it to
         # the supervisor (a render every RENDER_DUTY render times at most: the render process, on SCHED_FIFO,
         # takes at most 1/RENDER_DUTY of a core), as a real camera's frames cost the host little; in simulated

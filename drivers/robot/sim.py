@@ -20,8 +20,24 @@ class SimRobotDriver(Robot):
 
     @classmethod
     def from_config(cls, cfg, *, kin: PandaKinematics, clock: Clock, **_: object) -> SimRobotDriver:
-        """The configured sim robot at `robot.q_start_deg`, ticking at `robot.control_rate_hz`."""
-        return cls(SimRobot(kin, cfg.robot.q_start, dt=cfg.robot.control_period_s, clock=clock))
+        """The configured sim robot at `robot.q_start_deg`, ticking at `robot.control_rate_hz`; with the
+        config's `faults:` plan, it and the sim camera inject those faults (sim/faults.py)."""
+        faults = None
+        if getattr(cfg, "faults", ()):
+            from sim.faults import FaultInjector
+
+            faults = FaultInjector(cfg.faults, clock)
+        return cls(SimRobot(kin, cfg.robot.q_start, dt=cfg.robot.control_period_s, clock=clock, faults=faults))
+
+    @property
+    def faults(self):
+        """The fault plan's injector (None without one), shared with the sim camera."""
+        return self.sim.faults
+
+    def true_state(self) -> RobotState:
+        """The simulated arm's actual state (what the sim camera renders from, whatever faults it reports)."""
+        self._check_open()
+        return self.sim.true_state()
 
     @property
     def control_period(self) -> float:

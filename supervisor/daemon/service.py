@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from supervisor.arm.state import state_problem
 from supervisor.config import Config, load_config
 from supervisor.daemon.notify import Notifier
 from supervisor.errors import ConfigError, SupervisorError
@@ -139,7 +140,11 @@ class Daemon:
         now = self._now()
         try:
             st = self.drivers.robot.state()
-            if now - st.t > STATE_MAX_AGE:
+            # [issue-10f] an untrusted state (NaN, outside the limits, not a rigid pose) is not fresh either
+            bad = state_problem(st, self.drivers.kin.q_min, self.drivers.kin.q_max, None)
+            if bad:
+                problems.append(f"robot state: {bad}")
+            elif now - st.t > STATE_MAX_AGE:
                 problems.append(f"robot state is {1000 * (now - st.t):.0f} ms old")
         except Exception as exc:  # noqa: BLE001 - a failing driver is a problem to report
             problems.append(f"robot state: {type(exc).__name__}: {exc}")

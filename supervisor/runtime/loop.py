@@ -259,6 +259,9 @@ class SupervisorLoop:
         self._rest_t: float | None = None  # stop-and-go: when the robot came to rest for this step's frames
         self._stop_request: str | None = None  # set from another thread (operator stop, signal)
         self._q_min, self._q_max = np.asarray(kin.q_min, float), np.asarray(kin.q_max, float)
+        # [issue-10f] the newest state's age counts on the real clock only (a simulated clock also advances
+        # while the sim camera waits for a frame, with no robot tick in between)
+        self._real_clock = not isinstance(self.pacer, SimPacer)
 
     def request_stop(self, reason: str = "stop", halt_reason: str | None = None) -> None:
         """Brake at once and halt, latched (thread-safe: the tick picks it up). Always accepted. The halt
@@ -570,10 +573,12 @@ class SupervisorLoop:
         st = self._read_state(now)
         if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
             self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state")
-        elif now - st.t > self.stage.pose_gap + 1e-9:  # a frozen state (a controller gone): no new one arrives
-            self._fault(now, "state_gap", f"the robot state is {(now - st.t) * 1000:.1f} ms old "
+        elif self._real_clock and now - st.t > self.stage.pose_gap + 1e-9:  # a frozen state stream (a controller
+            # gone: franky's cached sample); on the real clock only (simulated time advances in camera waits)
+            self._fault(now, "state_gap", f"the newest robot state is {(now - st.t) * 1000:.1f} ms old "
                                           f"(no new state since t={st.t:.4f})")
-        fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9 and now - st.t <= self.stage.pose_gap + 1e-9
+        fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9 and not (
+            self._real_clock and now - st.t > self.stage.pose_gap + 1e-9)
         if st.t > self._last_state_t:
             self.history.add(st.t, st.q)
         self._last_state_t = st.t
