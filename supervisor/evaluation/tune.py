@@ -207,12 +207,12 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
     node["n_t"] = op.n_t
     node["consistency_limit_mm"] = round(op.guard * tt * 1000.0, 3)
     node["consistency_limit_deg"] = round(op.guard * math.degrees(tr), 3)
-    doc: dict[str, Any] = {"stages": {stage: node}}
+    node["tolerance_mm"] = round(tt * 1000.0, 6)  # the tolerance the stage is tuned for
+    node["tolerance_deg"] = round(math.degrees(tr), 6)
+    node.pop("error_kappa", None)
     if op.kappa is not None:
-        # The error-aware boundary is not a stage key yet (the loop must first pass the pose uncertainty
-        # to the predictor): a top-level section, which stage loading ignores.
-        doc["error_bound"] = {stage: {"kappa": op.kappa, "tolerance_mm": tt * 1000.0,
-                                      "tolerance_deg": math.degrees(tr)}}
+        node["error_kappa"] = op.kappa  # the error-aware boundary, against the tolerance above
+    doc: dict[str, Any] = {"stages": {stage: node}}
     cv = report["cross_validated"]
     head = (f"# stage {stage} tuned for {tolerance} by leave-one-scene-out cross-validation over "
             f"{report['arcs']} arcs of {len(report['scenes'])} scenes:\n"
