@@ -180,7 +180,9 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     def summary(stops: np.ndarray) -> dict[str, float]:
         return {"incursion_rate": float(np.mean(stops > grid.actual + _EPS)),
                 "incursions": int(np.sum(stops > grid.actual + _EPS)),
-                "mean_spl_deg": float(np.mean(np.minimum(stops, grid.actual))) * deg}
+                "mean_spl_deg": float(np.mean(np.minimum(stops, grid.actual))) * deg,
+                # the dry-run's envelope usage, per arc: how much of the actual envelope the stop used
+                "mean_usage": float(np.mean(np.minimum(stops, grid.actual) / np.maximum(grid.actual, 1e-9)))}
 
     cv, cv_static = summary(held_stops), summary(static_stops)
     every = np.arange(len(arcs))
