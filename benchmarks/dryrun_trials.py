@@ -7,7 +7,7 @@ at once would end) and envelope usage; then the totals
 against the paper's live trials (74.7% envelope usage, static 60.4%).
 
     .venv/bin/python benchmarks/dryrun_trials.py [-o out/trials] [--stage explore] [--jobs 2]
-        [--scenes phantom,box,...] [--suite v3] [--azimuths 0,90,270] [--config FILE]
+        [--scenes phantom,box,...] [--suite v3] [--azimuths 0,90,270] [--config FILE] [--resume]
 
 Default scenes: those of benchmark suite v3 (`--suite v2` for the previous suite's).
 """
@@ -30,14 +30,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
 
 
-def _trial(args: tuple[str, float, str, str, str, str | None]) -> dict:
+def _trial(args: tuple[str, float, str, str, str, str | None, bool]) -> dict:
     import cv2
 
     cv2.setNumThreads(1)
     from supervisor.config import load_config
     from supervisor.dryrun import DryRunSpec, run_dry_run
 
-    scene, az, sampling, stage, out, config = args
+    scene, az, sampling, stage, out, config, resume = args
+    done = Path(out) / "summary.json"
+    if resume and done.is_file():  # a trial an interrupted run finished (same stage and config: checked)
+        s = json.loads(done.read_text())
+        if s.get("stage") == stage and s.get("config_sha256") == load_config(config).sha256:
+            return s
     cfg = load_config(config)
     spec = DryRunSpec(stage=stage, azimuth=math.radians(az), sampling=sampling, scene=scene)
     return run_dry_run(cfg, spec, Path(out), progress=lambda m: None)
@@ -74,12 +79,14 @@ def main() -> int:
     ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: the suite's)")
     ap.add_argument("--azimuths", default="0,90,270")
     ap.add_argument("--modes", default="stop_and_go,continuous")
+    ap.add_argument("--resume", action="store_true", help="reuse trials a previous run of the same stage and config "
+                    "finished (their summary.json)")
     a = ap.parse_args()
     out = Path(a.out)
     scenes = (a.scenes or ",".join(SUITES[a.suite])).split(",")
     labels = trial_labels(scenes)
     trials = [(sc, float(az), mode, a.stage, str(trial_dir(out, f"{labels[sc]}_az{int(float(az)):03d}_{mode}")),
-               a.config)
+               a.config, a.resume)
               for sc in scenes for az in a.azimuths.split(",") for mode in a.modes.split(",")]
     print(f"{len(trials)} trials, stage {a.stage}", file=sys.stderr)
     rows = []

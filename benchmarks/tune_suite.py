@@ -7,7 +7,8 @@ mean SPL, static's cross-validated SPL and the improvement over it, and what wou
 all scenes (in-sample).
 
     .venv/bin/python benchmarks/tune_suite.py BENCH_DIR --cache OUT/cache [-o OUT/loso.json] [--jobs 2]
-        [--hard-limit-deg 45] [--plain] [--replayed FILE]
+        [--hard-limit-deg 45] [--plain] [--replayed FILE] [--suite v2] [--tolerances T,..]
+        [--error-aware both|on|off] [--families F,..]
 
 `--plain` chooses without the robust slack (the plain best zero-incursion point per fold);
 `--replayed FILE` keeps the replayed suite (a pickle) so that later runs skip the fits.
@@ -25,6 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from supervisor.config import load_config  # noqa: E402
+from supervisor.dataset.benchmark import SUITES  # noqa: E402
 from supervisor.evaluation.experiments import TOLERANCES, evaluate_suite  # noqa: E402
 from supervisor.evaluation.tune import cross_validate  # noqa: E402
 
@@ -34,6 +36,7 @@ FAMILIES = {
     "local_lcb": ("local_lcb",),
     "lcb": ("lcb",),
     "choose:logfit_lcb+fw_lcb+local_lcb": ("logfit_lcb", "fw_lcb", "local_lcb"),
+    "choose:lcb+logfit_lcb+fw_lcb+local_lcb": ("lcb", "logfit_lcb", "fw_lcb", "local_lcb"),
 }
 
 
@@ -48,6 +51,10 @@ def main() -> int:
     ap.add_argument("--plain", action="store_true")
     ap.add_argument("--replayed", default=None)
     ap.add_argument("--families", default=",".join(FAMILIES))
+    ap.add_argument("--suite", choices=sorted(SUITES), default=None,
+                    help="only the arcs of this suite's scenes (v3 keeps every v2 arc: --suite v2 on a v3 bench)")
+    ap.add_argument("--tolerances", default=",".join(TOLERANCES))
+    ap.add_argument("--error-aware", choices=("both", "on", "off"), default="both")
     a = ap.parse_args()
     cfg = load_config(a.config)
     rp = Path(a.replayed) if a.replayed else None
@@ -57,22 +64,23 @@ def main() -> int:
         results = evaluate_suite(cfg, a.bench_dir, a.cache, a.jobs)
         if rp is not None:
             rp.write_bytes(pickle.dumps(results))
-    arcs = [r for r in results if r.kind == "arc"]
+    arcs = [r for r in results if r.kind == "arc" and (a.suite is None or r.scene in SUITES[a.suite])]
     hard = math.radians(a.hard_limit_deg)
     rows = []
     print(f"{len(arcs)} arcs, {len({r.scene for r in arcs})} scenes, hard limit {a.hard_limit_deg:g} deg")
-    print(f"{'system':<44} {'tolerance':<10} {'CV R_i':>7} {'CV SPL':>7} {'static':>7} {'vs static':>9}  "
+    print(f"{'system':<44} {'tolerance':<10} {'CV R_i':>7} {'CV SPL':>7} {'usage':>6} {'static':>7} {'vs static':>9}  "
           f"chosen on all scenes (in-sample SPL)")
-    for tol in TOLERANCES:
+    for tol in a.tolerances.split(","):
         for name in a.families.split(","):
             variants = FAMILIES[name]
-            for err in (False, True):
+            for err in {"both": (False, True), "on": (True,), "off": (False,)}[a.error_aware]:
                 r = cross_validate(arcs, "next_step", variants, tol, hard, error_aware=err, robust=not a.plain)
                 r.pop("_final")
                 label = f"next_step {name}" + (" + error bound" if err else "")
                 cv, cs = r["cross_validated"], r["cross_validated_static"]
                 ins = r["in_sample"]
                 print(f"{label:<44} {tol:<10} {cv['incursion_rate']:>7.3f} {cv['mean_spl_deg']:>7.2f} "
+                      f"{100 * cv['mean_usage']:>5.1f}% "
                       f"{cs['mean_spl_deg']:>7.2f} {100 * r['cv_improvement_over_static']:>+8.1f}%  "
                       f"{r['chosen_on_all_scenes']} ({'—' if ins is None else format(ins['mean_spl_deg'], '.2f')})",
                       flush=True)

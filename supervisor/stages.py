@@ -20,6 +20,10 @@ A `stages:` mapping in the configuration YAML (degrees/ms at this edge, SI in
         consistency_limit_deg: 5.0
         pose_gap_ms: 20
         overrun_budget: 3            # consecutive control ticks past their deadline = fault (real clock)
+        tolerance_mm: 4              # the pose tolerance the stage is tuned for (needed by error_kappa)
+        tolerance_deg: 10
+        error_kappa: 2.8             # the error-aware boundary (prediction/errorbound.py): also stop where
+                                     # kappa x the modelled pose sd reaches the tolerance (absent = off)
         limits: {velocity_deg_s: 10, acceleration_deg_s2: 20, jerk_deg_s3: 200}
 
 A stage changes only at rest (the daemon refuses a change while moving), so a
@@ -65,6 +69,9 @@ class StageConfig:
     consistency_t: float = 0.002  # m; 0 = guard off
     consistency_r: float = math.radians(5.0)  # rad; 0 = guard off
     overrun_budget: int = 3  # consecutive control ticks past their deadline that make a fault (real clock)
+    tolerance_t: float | None = None  # m, the translation tolerance the stage is tuned for (None: not given)
+    tolerance_r: float | None = None  # rad, the rotation tolerance
+    error_kappa: float | None = None  # the error-aware boundary's kappa (None: off); needs both tolerances
 
     def theta_allowed(self, theta_p: float | None) -> float:
         """The one rule for the angle the gate must not pass: `min(theta_p - margin, hard_limit)`.
@@ -111,9 +118,25 @@ def parse_stage(name: str, n: Node) -> StageConfig:
         consistency_t=n.number("consistency_limit_mm", 2.0, min=0.0, max=1000.0) / 1000.0,
         consistency_r=math.radians(n.number("consistency_limit_deg", 5.0, min=0.0, max=180.0)),
         overrun_budget=n.integer("overrun_budget", 3, min=1, max=1000),
+        **_error_bound(n),
     )
     n.done()
     return stage
+
+
+def _error_bound(n: Node) -> dict[str, float | None]:
+    """`tolerance_mm`, `tolerance_deg` (optional) and `error_kappa` (optional; needs both tolerances), in SI."""
+    tol_mm = n.optional_number("tolerance_mm", min=0.0, max=1000.0, min_exclusive=True)
+    tol_deg = n.optional_number("tolerance_deg", min=0.0, max=180.0, min_exclusive=True)
+    kappa = n.optional_number("error_kappa", min=0.0, max=1000.0, min_exclusive=True)
+    if kappa is not None:
+        for key, v in (("tolerance_mm", tol_mm), ("tolerance_deg", tol_deg)):
+            if v is None:
+                raise n.error(key, "required when error_kappa is set (the error-aware boundary stops where "
+                              "kappa x the pose uncertainty reaches this tolerance)")
+    return {"tolerance_t": None if tol_mm is None else tol_mm / 1000.0,
+            "tolerance_r": None if tol_deg is None else math.radians(tol_deg),
+            "error_kappa": kappa}
 
 
 def parse_stages(root: Node, key: str = "stages") -> Mapping[str, StageConfig]:

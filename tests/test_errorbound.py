@@ -69,6 +69,8 @@ def test_error_aware_predictor_stops_on_growing_uncertainty_while_n_i_is_still_h
         for name, p in (("err", err_aware.update(x, n, err=sd)), ("plain", plain.update(x, n))):
             if k >= 3 and not p.allow_next and name not in stops:
                 stops[name] = k
+                assert name != "err" or p.limited_by == "error_bound"  # the halt reason the loop reports
+        assert plain.last.limited_by == ""
     assert stops["err"] <= 7 and "plain" not in stops
     assert err_aware.last.boundary <= math.radians(45.0)
     lone = ErrorAwarePredictor(base(), 0.004, math.radians(10.0), 2.0, step)

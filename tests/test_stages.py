@@ -88,6 +88,18 @@ def test_load_stages_from_file(tmp_path):
         ("jerk_deg_s3: 200}", "jerk: 200}", "stages.fast.limits.jerk", "unknown key"),
         ("    variant: paper\n    n_t", "    n_t", "stages.fast.variant", "required"),
         ("  fast:", "  2fast:", "stages.2fast", "letter"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    error_kappa: 2\n    tolerance_deg: 10", "stages.fast.tolerance_mm",
+         "required when error_kappa is set"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    error_kappa: 2\n    tolerance_mm: 4", "stages.fast.tolerance_deg",
+         "required when error_kappa is set"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    error_kappa: -1\n    tolerance_mm: 4\n    tolerance_deg: 10",
+         "stages.fast.error_kappa", "> 0"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    error_kappa: .nan\n    tolerance_mm: 4\n    tolerance_deg: 10",
+         "stages.fast.error_kappa", "finite"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    tolerance_mm: 0", "stages.fast.tolerance_mm", "> 0"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    error_kappa: yes\n    tolerance_mm: 4\n    tolerance_deg: 10",
+         "stages.fast.error_kappa", "number"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    kappa: 2", "stages.fast.kappa", "unknown key"),
     ],
 )
 def test_bad_values_name_file_and_dotted_key(old, new, key, words):
@@ -116,3 +128,13 @@ def test_theta_allowed_is_one_rule():
     assert st.theta_allowed(30.5 * DEG) == pytest.approx(30 * DEG)
     assert st.theta_allowed(None) == pytest.approx(30 * DEG)
     assert st.theta_allowed(1 * DEG) == pytest.approx(-1 * DEG)  # already past: stop now
+
+
+def test_error_bound_keys_are_converted_once_and_optional():
+    text = GOOD.replace("pose_gap_ms: 20", "pose_gap_ms: 20\n    error_kappa: 2.8\n    tolerance_mm: 4\n"
+                        "    tolerance_deg: 10", 1)
+    st = stages_from(text)
+    fast, slow = st["fast"], st["slow"]
+    assert fast.error_kappa == 2.8
+    assert fast.tolerance_t == pytest.approx(0.004) and fast.tolerance_r == pytest.approx(10 * DEG)
+    assert (slow.error_kappa, slow.tolerance_t, slow.tolerance_r) == (None, None, None)  # off by default

@@ -71,7 +71,18 @@ def test_the_error_bound_can_make_a_low_threshold_safe_and_the_stage_yaml_loads(
     p.write_text(text)
     st = load_stages(p)["explore"]
     assert st.n_t == aware["_final"].n_t and st.variant == "logfit_lcb"
-    assert "error_bound" in text and "cross-validated incursion rate" in text
+    assert st.error_kappa == aware["_final"].kappa  # a stage key the loop uses
+    assert st.tolerance_t == pytest.approx(0.004) and st.tolerance_r == pytest.approx(math.radians(10.0))
+    assert "cross-validated incursion rate" in text
+    st_plain = load_stages(_written(tmp_path, stage_yaml(cfg, "explore", plain["_final"], "4mm_10deg",
+                                                         {**plain, "stage": "explore"})))["explore"]
+    assert st_plain.error_kappa is None and st_plain.tolerance_t == pytest.approx(0.004)
     with pytest.raises(Exception, match="2 scenes"):
         cross_validate(arcs[:1], "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0))
     assert np.isfinite(plain["cross_validated"]["mean_spl_deg"])
+
+
+def _written(tmp_path, text: str):
+    p = tmp_path / "plain.yaml"
+    p.write_text(text)
+    return p

@@ -180,7 +180,9 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     def summary(stops: np.ndarray) -> dict[str, float]:
         return {"incursion_rate": float(np.mean(stops > grid.actual + _EPS)),
                 "incursions": int(np.sum(stops > grid.actual + _EPS)),
-                "mean_spl_deg": float(np.mean(np.minimum(stops, grid.actual))) * deg}
+                "mean_spl_deg": float(np.mean(np.minimum(stops, grid.actual))) * deg,
+                # the dry-run's envelope usage, per arc: how much of the actual envelope the stop used
+                "mean_usage": float(np.mean(np.minimum(stops, grid.actual) / np.maximum(grid.actual, 1e-9)))}
 
     cv, cv_static = summary(held_stops), summary(static_stops)
     every = np.arange(len(arcs))
@@ -207,12 +209,12 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
     node["n_t"] = op.n_t
     node["consistency_limit_mm"] = round(op.guard * tt * 1000.0, 3)
     node["consistency_limit_deg"] = round(op.guard * math.degrees(tr), 3)
-    doc: dict[str, Any] = {"stages": {stage: node}}
+    node["tolerance_mm"] = round(tt * 1000.0, 6)  # the tolerance the stage is tuned for
+    node["tolerance_deg"] = round(math.degrees(tr), 6)
+    node.pop("error_kappa", None)
     if op.kappa is not None:
-        # The error-aware boundary is not a stage key yet (the loop must first pass the pose uncertainty
-        # to the predictor): a top-level section, which stage loading ignores.
-        doc["error_bound"] = {stage: {"kappa": op.kappa, "tolerance_mm": tt * 1000.0,
-                                      "tolerance_deg": math.degrees(tr)}}
+        node["error_kappa"] = op.kappa  # the error-aware boundary, against the tolerance above
+    doc: dict[str, Any] = {"stages": {stage: node}}
     cv = report["cross_validated"]
     head = (f"# stage {stage} tuned for {tolerance} by leave-one-scene-out cross-validation over "
             f"{report['arcs']} arcs of {len(report['scenes'])} scenes:\n"

@@ -22,6 +22,9 @@ class Prediction:
     fit: object | None = None  # FitResult (params in fit units) when there is one
     params: tuple[float, float, float] | None = None  # (alpha, K, mu) in fit units, for plots
     scale: float = 1.0  # EMG width in fit units (1 = the paper's model): curve = emg(x, *params, scale)
+    # which boundary binds: "" (the n_i model) or "error_bound" (the error-aware boundary is the
+    # earlier one, or refuses a step the n_i model alone would allow)
+    limited_by: str = ""
 
 
 @dataclass
@@ -46,7 +49,11 @@ class _Samples:
 
 
 class Predictor(Protocol):
-    """Samples in, prediction out: `update` takes one sampling step's frames (SI positions, inlier counts)."""
+    """Samples in, prediction out: `update` takes one sampling step's frames (SI positions, inlier counts).
+
+    A predictor that also models the pose uncertainty sets `needs_err = True`: the loop then calls
+    `update(xs, ns, err=...)` with the step's per-frame (sd_t m, sd_r rad), nan where a frame did
+    not localize."""
 
     kind: str
 

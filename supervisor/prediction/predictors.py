@@ -149,6 +149,7 @@ class ErrorAwarePredictor:
     """
 
     kind = "error_aware"
+    needs_err = True  # the loop passes the step's per-frame (sd_t, sd_r)
 
     def __init__(self, base, tol_t: float, tol_r: float, kappa: float, step: float,
                  x_max: float = math.radians(45.0), window: int = ERR_WINDOW, z: float = Z_ERR) -> None:
@@ -188,9 +189,13 @@ class ErrorAwarePredictor:
             return p
         ok = log_margin(trends, p.x_now + self.step, self.kappa, self.z) < 0
         b = min(p.boundary, self.error_boundary)
-        self.last = Prediction(True, b, bool(ok and p.allow_next is not False),
+        base_allows = p.allow_next is not False
+        # the error bound is the reason for a stop when it is the earlier boundary, or refuses a step
+        # the n_i model alone would allow
+        by_error = self.error_boundary < p.boundary or (not ok and base_allows)
+        self.last = Prediction(True, b, bool(ok and base_allows),
                                f"{p.reason}; error bound {math.degrees(self.error_boundary):.2f}", p.x_now, p.fit,
-                               p.params, p.scale)
+                               p.params, p.scale, "error_bound" if by_error else "")
         return self.last
 
     def trends(self) -> list[tuple[ErrorTrend, float]]:
@@ -206,8 +211,17 @@ PREDICTORS = ("next_step", "long_range", "static", "mlp")
 
 
 def make_predictor(kind: str, variant: str, n_t: float, step: float, *, axis: Axis = ANGLE,
-                   hard_limit: float = math.radians(45.0), static_limit: float | None = None, seed: int = 0):
-    """The predictor a stage names (`predictor`, `variant`, `n_t`, `step`)."""
+                   hard_limit: float = math.radians(45.0), static_limit: float | None = None, seed: int = 0,
+                   error_kappa: float | None = None, tolerance_t: float | None = None,
+                   tolerance_r: float | None = None):
+    """The predictor a stage names (`predictor`, `variant`, `n_t`, `step`), wrapped in the error-aware
+    boundary when the stage sets `error_kappa` (with its tolerance, SI)."""
+    if error_kappa is not None:
+        if tolerance_t is None or tolerance_r is None:
+            raise ValueError("the error-aware boundary needs the stage's tolerance (tolerance_t, tolerance_r)")
+        base = make_predictor(kind, variant, n_t, step, axis=axis, hard_limit=hard_limit,
+                              static_limit=static_limit, seed=seed)
+        return ErrorAwarePredictor(base, tolerance_t, tolerance_r, error_kappa, step, hard_limit)
     if kind == "next_step":
         return NextStepPredictor(n_t, step, variant, axis, hard_limit)
     if kind == "long_range":

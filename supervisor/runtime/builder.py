@@ -225,6 +225,12 @@ class ArcPlan:
     check: PathCheck
 
 
+def stage_predictor(st: StageConfig):
+    """The predictor a stage names, with the error-aware boundary when the stage sets `error_kappa`."""
+    return make_predictor(st.predictor, st.variant, st.n_t, st.step, hard_limit=st.hard_limit,
+                          error_kappa=st.error_kappa, tolerance_t=st.tolerance_t, tolerance_r=st.tolerance_r)
+
+
 class Supervisor:
     """A configured supervisor on its drivers: the model, the stage, planned and gated motions."""
 
@@ -397,7 +403,7 @@ class Supervisor:
         worker = self._worker_for_run()
         try:
             follower = PathFollower(plan.path, st.limits, d.kin, d.robot.state().q, d.robot.control_period)
-            predictor = make_predictor(st.predictor, st.variant, st.n_t, st.step, hard_limit=st.hard_limit)
+            predictor = stage_predictor(st)
             pacer = self.pacer(st)
             loop = SupervisorLoop(robot=d.robot, frames=self.frames, worker=worker, predictor=predictor, stage=st,
                                   follower=follower, kin=d.kin, T_base_cam_model=self.T_base_cam_model,

@@ -85,6 +85,8 @@ class Sample:
     T_cam_target: np.ndarray | None
     meta: dict[str, Any]
     T_base_cam: np.ndarray | None = None  # robot kinematics at the frame's time
+    sd_t: float = math.nan  # the pose's 1-sigma spread at the target (m; nan: not localized)
+    sd_r: float = math.nan  # rad
 
 
 def overshoot(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
@@ -137,6 +139,13 @@ class RunRecord:
     fits: list[dict[str, Any]] = field(default_factory=list)  # per predictor update
 
 
+def _update(predictor, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None):
+    """One predictor update; the step's pose uncertainty goes to the predictors that model it."""
+    if getattr(predictor, "needs_err", False):
+        return predictor.update(xs, ns, err=err)
+    return predictor.update(xs, ns)
+
+
 class InlineFits:
     """The predictor's fits where the loop asks for them (simulated time: deterministic)."""
 
@@ -144,9 +153,9 @@ class InlineFits:
         self.predictor = predictor
         self._done: dict[int, tuple[object, BaseException | None]] = {}
 
-    def submit(self, step: int, xs: np.ndarray, ns: np.ndarray) -> None:
+    def submit(self, step: int, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> None:
         try:
-            self._done[step] = (self.predictor.update(xs, ns), None)
+            self._done[step] = (_update(self.predictor, xs, ns, err), None)
         except Exception as exc:  # noqa: BLE001 - handed to the loop, which treats it as no valid model
             self._done[step] = (None, exc)
 
@@ -171,17 +180,17 @@ class ThreadFits(InlineFits):
         self._thread = threading.Thread(target=self._run, name="predictor", daemon=True)
         self._thread.start()
 
-    def submit(self, step: int, xs: np.ndarray, ns: np.ndarray) -> None:
-        self._jobs.put((step, xs, ns))
+    def submit(self, step: int, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> None:
+        self._jobs.put((step, xs, ns, err))
 
     def _run(self) -> None:
         while True:
             job = self._jobs.get()
             if job is None:
                 return
-            step, xs, ns = job
+            step, xs, ns, err = job
             try:
-                out = (self.predictor.update(xs, ns), None)
+                out = (_update(self.predictor, xs, ns, err), None)
             except Exception as exc:  # noqa: BLE001
                 out = (None, exc)
             with self._lock:
@@ -244,6 +253,7 @@ class SupervisorLoop:
         self._theta_allowed = self._warmup_allowance()
         self._valid_prediction = False
         self._allow_next = True  # the predictor's next-step rule (warm-up: allowed)
+        self._limited_by = ""  # the last valid prediction's binding boundary ("error_bound" or "")
         self._step = 0
         self._frames_in_step = 0
         self._awaiting: dict[int, int] = {}  # step -> localizations outstanding
@@ -318,11 +328,13 @@ class SupervisorLoop:
             allow_next = False
         self._theta_allowed = allowed
         self._allow_next = allow_next
+        self._limited_by = getattr(pred, "limited_by", "") if valid else ""
         self.record.theta_p_history.append((t, pred.boundary if valid else math.nan, allowed))
         self._record_allowance(t, stop_here)
         self.events.emit(t, "prediction", valid=valid, theta_p_deg=math.degrees(pred.boundary) if valid else None,
                          theta_allowed_deg=math.degrees(allowed),
-                         reason=getattr(pred, "reason", "no prediction"), s_deg=math.degrees(s_now))
+                         reason=getattr(pred, "reason", "no prediction"), s_deg=math.degrees(s_now),
+                         **({"limited_by": self._limited_by} if self._limited_by else {}))
 
     def _stop_point(self) -> float:
         """Where the path coordinate would come to rest if the robot braked now."""
@@ -332,8 +344,11 @@ class SupervisorLoop:
         self.record.allowance_history.append((t, self._theta_allowed, stop_at))
 
     def _boundary_halt_reason(self) -> str:
-        """Why the robot stays where it is when no further motion is permitted."""
-        return "consistency" if self._guard_stop is not None else "boundary"
+        """Why the robot stays where it is when no further motion is permitted: the consistency guard,
+        the error-aware boundary (when the last prediction's binding boundary was it), or the n_i model."""
+        if self._guard_stop is not None:
+            return "consistency"
+        return "error_bound" if self._limited_by == "error_bound" else "boundary"
 
     # -- frames --------------------------------------------------------------------------
     def _camera_pose_at(self, t: float) -> np.ndarray | None:
@@ -386,7 +401,7 @@ class SupervisorLoop:
             if res.ok:
                 self._last_ok = (job.T_base_cam, res.T_cam_target)
             s = Sample(job.t, job.step, theta, res.n_inliers, res.status.name, res.T_cam_target, job.meta,
-                       job.T_base_cam)
+                       job.T_base_cam, res.sd_t if res.ok else math.nan, res.sd_r if res.ok else math.nan)
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
             self._awaiting[job.step] -= 1
@@ -408,9 +423,10 @@ class SupervisorLoop:
         samples = self._step_samples.get(step, [])
         xs = np.array([s.theta for s in samples], float)
         ns = np.array([s.n_inliers for s in samples], float)
+        err = np.array([(s.sd_t, s.sd_r) for s in samples], float).reshape(-1, 2)
         if step not in self._fit_requested:
             self._fit_requested[step] = now
-            self.fits.submit(step, xs, ns)
+            self.fits.submit(step, xs, ns, err)
         done = self.fits.take(step)
         if done is None:
             if now - self._fit_requested[step] > self.stage.localization_timeout + 1e-9:
