@@ -149,7 +149,7 @@ def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIOR
     hand the GIL back within 0.2 ms instead of 5 ms) and, where permitted (root, CAP_SYS_NICE or an
     RLIMIT_RTPRIO), the SCHED_FIFO real-time policy for this thread.
 
-    The process's other Python threads (capture, result collector, event writer, queue feeders) go to
+    The process's other light Python threads (capture, result collector, event writer, queue feeders) go to
     SCHED_FIFO `helpers` (1, the lowest real-time priority) for the run: each holds the GIL now and then,
     and an ordinary thread holding it can be preempted by any other process for a scheduler slice, which
     kept the tick from its GIL for 20-50 ms on a loaded 2-core machine (a robot-state gap). At the lowest
@@ -175,7 +175,7 @@ def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIOR
     moved = []
     for t in threading.enumerate():
         tid = t.native_id
-        if tid is None or tid == me:
+        if tid is None or tid == me or _compute_bound(t.name):
             continue
         try:
             before = os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
@@ -188,6 +188,13 @@ def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIOR
     out["_helpers"] = moved
     out["helper_threads"] = len(moved)
     return out
+
+
+def _compute_bound(name: str) -> bool:
+    """Threads that compute for long stretches stay ordinary (on SCHED_FIFO they would take cores from the
+    localization processes and count against the kernel's real-time budget): the thread worker's
+    localizers, the predictor's fits, the session recorder's PNG encoder."""
+    return (name.startswith("localize-") and name != "localize-results") or name in ("predictor", "session-writer")
 
 
 def _current_policy():
