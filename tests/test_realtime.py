@@ -30,3 +30,42 @@ def test_realtime_dry_run_halts_latched_without_overshoot(tmp_path):
         assert s["halt_reason"].startswith("fault:")
     assert s["max_overshoot_deg"] is None or s["max_overshoot_deg"] <= 1e-6  # None: halted before any tick
     assert (tmp_path / "events.jsonl").read_text().count('"kind": "halted"') == 1
+
+
+def test_realtime_setup_lifts_light_threads_and_puts_every_thread_back():
+    """The tick's thread and the process's light threads go real-time for a run; compute-bound ones stay
+    ordinary; afterwards every thread is as it was."""
+    import os
+    import threading
+
+    from supervisor.runtime.builder import realtime_thread_restore, realtime_thread_setup
+
+    stop = threading.Event()
+    threads = {name: threading.Thread(target=stop.wait, name=name, daemon=True)
+               for name in ("capture", "event-writer", "predictor", "localize-0", "session-writer")}
+    for t in threads.values():
+        t.start()
+
+    def policy(t) -> int:
+        return os.sched_getscheduler(t.native_id)
+
+    before = {n: (policy(t), os.sched_getparam(t.native_id).sched_priority) for n, t in threads.items()}
+    main_before = os.sched_getscheduler(0)
+    try:
+        setup = realtime_thread_setup()
+        try:
+            if not setup["sched_fifo"]:
+                assert setup["_helpers"] == []  # unprivileged: nothing else is touched either
+            else:
+                assert os.sched_getscheduler(0) == os.SCHED_FIFO
+                for name in ("capture", "event-writer"):
+                    assert policy(threads[name]) == os.SCHED_FIFO, name
+                    assert os.sched_getparam(threads[name].native_id).sched_priority == 1
+                for name in ("predictor", "localize-0", "session-writer"):
+                    assert policy(threads[name]) == before[name][0], name
+        finally:
+            realtime_thread_restore(setup)
+        assert os.sched_getscheduler(0) == main_before
+        assert {n: (policy(t), os.sched_getparam(t.native_id).sched_priority) for n, t in threads.items()} == before
+    finally:
+        stop.set()
