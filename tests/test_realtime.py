@@ -33,8 +33,8 @@ def test_realtime_dry_run_halts_latched_without_overshoot(tmp_path):
 
 
 def test_realtime_setup_lifts_light_threads_and_puts_every_thread_back():
-    """The tick's thread and the process's light threads go real-time for a run; compute-bound ones stay
-    ordinary; afterwards every thread is as it was."""
+    """The tick's thread and the process's other threads go real-time for a run, but for the thread worker's
+    localizers; afterwards every thread is as it was."""
     import os
     import threading
 
@@ -58,10 +58,10 @@ def test_realtime_setup_lifts_light_threads_and_puts_every_thread_back():
                 assert setup["_helpers"] == []  # unprivileged: nothing else is touched either
             else:
                 assert os.sched_getscheduler(0) == os.SCHED_FIFO
-                for name in ("capture", "event-writer"):
+                for name in ("capture", "event-writer", "predictor", "session-writer"):
                     assert policy(threads[name]) == os.SCHED_FIFO, name
                     assert os.sched_getparam(threads[name].native_id).sched_priority == 1
-                for name in ("predictor", "localize-0", "session-writer"):
+                for name in ("localize-0",):
                     assert policy(threads[name]) == before[name][0], name
         finally:
             realtime_thread_restore(setup)
