@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -44,6 +45,9 @@ class SimCamera(Camera):
         self._render_s = 0.0  # the last render's wall time (real clock only)
         self._lens = LensDistortion(renderer.intrinsics) if lens and has_distortion(renderer.intrinsics) else None
         self.faults = None  # a sim.faults.FaultInjector (the config's fault plan), set by from_config
+        # the longest gap between frames the duty cycle may make (from_config: half the camera timeout), so that
+        # a slow render on a loaded machine does not read as a stalled camera
+        self.max_interval = math.inf
         self._fault_rng = np.random.default_rng(noise_seed)
         self._last_exposed: float | None = None
 
@@ -75,6 +79,7 @@ class SimCamera(Camera):
             read = robot.state
         cam = cls(renderer, lambda: read().T_base_flange @ T_flange_cam, clock, cfg.camera.frame_period_s,
                   noise_seed=seed)
+        cam.max_interval = max(cfg.camera.frame_period_s, 0.5 * cfg.camera.timeout_s)
         faults = getattr(robot, "faults", None)
         if faults is not None:  # the config's fault plan (sim/faults.py): at_angle_deg counts from the start view
             faults.set_reference(cam.start_view()[0], T_flange_cam)
@@ -139,7 +144,7 @@ class SimCamera(Camera):
         # the supervisor (a render every RENDER_DUTY render times at most: the render process, on SCHED_FIFO,
         # takes at most 1/RENDER_DUTY of a core), as a real camera's frames cost the host little; in simulated
         # time (and whenever rendering keeps up) the configured rate.
-        self._pace(max(self.frame_period, RENDER_DUTY * self._render_s))
+        self._pace(max(self.frame_period, min(RENDER_DUTY * self._render_s, self.max_interval)))
         exposed = self.clock.now()  # the pose is sampled now; rendering takes real time on a real clock
         T_base_cam = np.array(self.pose_source(), dtype=float)
         t0 = time.perf_counter()
