@@ -20,7 +20,8 @@ from supervisor.errors import ConfigError, SupervisorError
 DBC_NAMES = {"heartbeat": "HEARTBEAT", "stop": "STOP", "external_stop": "EXTERNAL_STOP", "status": "STATUS"}
 E2E_SIGNALS = ("Crc", "AliveCounter")
 STATES = ("idle", "armed", "moving", "halted", "fault")
-STOP_REASONS = ("other", "end_of_path", "boundary", "gate", "stop_request", "external_stop", "fault", "consistency")
+STOP_REASONS = ("other", "end_of_path", "boundary", "gate", "stop_request", "external_stop", "fault", "consistency",
+                "error_bound")
 
 
 class FrameError(SupervisorError):
