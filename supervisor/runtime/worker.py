@@ -561,11 +561,11 @@ class ProcessWorker:
         """Stop the processes and release the shared memory. Idempotent."""
         if self._closed:
             return
-        self._shutdown(timeout)
         try:
-            self._results.put(None)
-        except (OSError, ValueError):
+            self._results.put(None)  # wakes the collector; before _shutdown closes the queue (after it, the
+        except (OSError, ValueError):  # sentinel never arrived and every close waited out the 0.5 s join)
             pass
+        self._shutdown(timeout)
         self._collector.join(0.5)
 
     def _shutdown(self, timeout: float = 2.0) -> None:
