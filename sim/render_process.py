@@ -19,7 +19,12 @@ from sim.scene import Scene
 from supervisor.camera_model import Intrinsics
 from supervisor.errors import DriverError
 
-RENDER_PRIORITY = 10  # SCHED_FIFO, below the control tick's 20
+# The render process runs on the ordinary policy. On SCHED_FIFO (10, below the tick's 20) its renders and the
+# 1 kHz tick together could exceed the kernel's real-time budget on one CPU (sched_rt_runtime_us: 95% of each
+# second), and throttling then stalls every real-time thread there, the tick included, for the rest of the
+# second: 50-overrun faults on a quiet machine. A simulated camera is not a real-time task (a real camera's
+# frames cost the host a DMA transfer); the sim camera spaces its frames by its duty cycle instead.
+RENDER_PRIORITY: int | None = None
 
 
 def _serve(scene: Scene, intrinsics: Intrinsics, shm_name: str, conn) -> None:
@@ -28,10 +33,16 @@ def _serve(scene: Scene, intrinsics: Intrinsics, shm_name: str, conn) -> None:
     from supervisor.runtime.worker import die_with_parent
 
     die_with_parent()
-    try:  # a camera delivers its frames whatever else the machine does: where permitted, real-time policy
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RENDER_PRIORITY))
-    except (AttributeError, OSError):
-        pass
+    if RENDER_PRIORITY is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RENDER_PRIORITY))
+        except (AttributeError, OSError):
+            pass
+    else:  # ordinary, whatever the spawning thread was (a tick thread's SCHED_FIFO would be inherited)
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except (AttributeError, OSError):
+            pass
     shm = shared_memory.SharedMemory(name=shm_name)
     try:
         renderer = Renderer(scene, intrinsics)

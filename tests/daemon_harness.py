@@ -33,6 +33,17 @@ def config_with(tmp: Path, extra: str, name: str = "cfg.yaml", replace: dict[str
     return p
 
 
+def lenient_overruns(tmp: Path, name: str = "lenient.yaml", budget: int = 50) -> Path:
+    """The default config with every stage's overrun budget at `budget` (shipped: 3). For the tests of what
+    the daemon does while the arm moves (stop, SIGTERM, recording): on this shared 2-core VM the 1 kHz tick
+    missed 3 deadlines in a row within a second of some runs even at load ~2, which is a correct latched
+    halt but leaves nothing moving to test. The overrun rule itself is tested at loop level
+    (tests/test_loop_failsafe.py, injected 3 ms stalls) and with the shipped budget by the other daemon tests."""
+    text = DEFAULT_CONFIG.read_text()
+    assert text.count("    pose_gap_ms: 20") == 4, "one pose_gap_ms per stage"
+    return config_with(tmp, "", name, {"    pose_gap_ms: 20": f"    pose_gap_ms: 20\n    overrun_budget: {budget}"})
+
+
 class Notify:
     """A systemd stand-in: the datagram socket a Type=notify service reports to."""
 
