@@ -30,6 +30,7 @@ from daemon_harness import DaemonProc  # noqa: E402
 HOST = "127.0.0.81"
 ROOT = Path(__file__).resolve().parents[1]
 FRAME_RATE_HZ = 10
+TRACKING_DEG = 0.01  # how far the reported arm may pass a commanded stop (its tracking error), deg of arc
 GATE_HALTS = ("boundary", "hard_limit", "consistency", "no_model", "end_of_path")
 
 
@@ -125,8 +126,10 @@ def rig(tmp_path_factory):
 def test_a_gated_arc_on_franky_sim_halts_within_the_allowance_on_the_reported_trajectory(rig):
     s = rig.run_arc()
     assert s["halt_reason"] in GATE_HALTS, s
-    # max_overshoot_deg: the executed angle from the joint states franky-sim reported, minus theta_allowed
-    assert s["max_overshoot_deg"] <= 1e-6, s
+    # max_overshoot_deg: the executed angle from the joint states franky-sim reported, minus theta_allowed. The
+    # commanded path stops at the allowance; the arm itself may pass its last target by its tracking error
+    # (franky-sim: 0.13-0.20 mrad in joint space, ~0.005 deg of arc; a CI run measured 0.0003 deg)
+    assert s["max_overshoot_deg"] <= TRACKING_DEG, s
     assert s["halt_angle_deg"] <= s["theta_allowed_deg"] + 1e-6, s
     assert s["max_executed_angle_deg"] > 5.0, s  # the arm really went round the target
     assert rig.status()["state"] == "halted"
@@ -139,7 +142,7 @@ def test_ctl_stop_brakes_the_franka_arc_at_once(rig):
     code, reply = rig.ctl("wait", "--timeout", "60")
     assert code == 0, reply
     assert reply["summary"]["halt_reason"] == "stop:operator", reply
-    assert reply["summary"]["max_overshoot_deg"] <= 1e-6, reply
+    assert reply["summary"]["max_overshoot_deg"] <= TRACKING_DEG, reply
     brake = [e for e in rig.events("brake") if e["reason"] == "stop:operator"][-1]
     halted = [e for e in rig.events("halted") if e["reason"] == "stop:operator"][-1]
     assert halted["t"] - brake["t"] < 2.0  # braked to rest on the stage's braking profile
