@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -25,10 +23,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from daemon_vs_dryrun import Daemon as SimDaemon  # noqa: E402 - the same daemon subprocess, beside this file
 from sim.fci_server import FciServer  # noqa: E402
-from supervisor.daemon.client import request  # noqa: E402
-
-SUPERVISOR = str(Path(sys.executable).with_name("supervisor"))
 
 
 def config(tmp: Path, host: str, fps: int, timeout_scale: float) -> Path:
@@ -43,21 +39,16 @@ def config(tmp: Path, host: str, fps: int, timeout_scale: float) -> Path:
     return path
 
 
-class Daemon:
-    def __init__(self, tmp: Path, cfg: Path) -> None:
-        self.sock = tmp / "control.sock"
-        self.events_path = tmp / "logs" / "events.jsonl"
-        self.out = open(tmp / "daemon.out", "w")  # noqa: SIM115
-        self.proc = subprocess.Popen([SUPERVISOR, "daemon", "--config", str(cfg), "--socket", str(self.sock),
-                                      "--log-dir", str(tmp / "logs")], stdout=self.out, stderr=subprocess.STDOUT)
-        t_end = time.monotonic() + 180
-        while not self.sock.exists():
-            if self.proc.poll() is not None or time.monotonic() > t_end:
-                raise RuntimeError(f"daemon did not start: {(tmp / 'daemon.out').read_text()}")
-            time.sleep(0.2)
+class Daemon(SimDaemon):
+    """daemon_vs_dryrun's daemon subprocess (start, requests, SIGTERM at the end), with what these runs need."""
 
-    def req(self, **obj) -> dict:
-        return request(self.sock, obj, 200.0)
+    def __init__(self, tmp: Path, cfg: Path) -> None:
+        super().__init__(tmp, ["--config", str(cfg)])
+        self.events_path = tmp / "daemon" / "logs" / "events.jsonl"
+        self.wait_ready(tmp)
+
+    def req(self, obj: dict | None = None, timeout: float = 200.0, **fields) -> dict:
+        return super().req({**(obj or {}), **fields}, timeout)
 
     def wait_state(self, state: str, timeout: float) -> bool:
         t_end = time.monotonic() + timeout
@@ -78,15 +69,6 @@ class Daemon:
         r = self.req(cmd="run", azimuth_deg=90.0)
         if not r.get("ok"):
             raise RuntimeError(f"run refused: {r}")
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-        self.out.close()
 
 
 def main() -> int:

@@ -17,9 +17,9 @@ from supervisor.errors import CameraTimeout, DriverError
 from sim.faults import BACKWARDS_STEP, STALE_AGE, frame_fault
 
 
-# A real-time renderer at a higher duty cycle starved the ordinary-priority localization processes and, with
-# franky-sim's physics also real-time, ran the machine into the kernel's real-time throttling (95% of each
-# second), which stalled every real-time thread, the control tick included, for 50-300 ms.
+# At a render every 1.2 render times the renderer took 83% of a core, which starved the localization
+# processes (and, when the render process was real-time, ran the machine into the kernel's real-time
+# throttling, which stalled the tick 50-300 ms).
 RENDER_DUTY = 2.5
 
 
@@ -141,8 +141,8 @@ class SimCamera(Camera):
 
     def _render_frame(self, timeout: float) -> RawFrame:
         # On the real clock a render takes real time: pace at what this machine sustains while leaving it to
-        # the supervisor (a render every RENDER_DUTY render times at most: the render process, on SCHED_FIFO,
-        # takes at most 1/RENDER_DUTY of a core), as a real camera's frames cost the host little; in simulated
+        # the supervisor (a render every RENDER_DUTY render times at most: the render process takes at most
+        # 1/RENDER_DUTY of a core), as a real camera's frames cost the host little; in simulated
         # time (and whenever rendering keeps up) the configured rate.
         self._pace(max(self.frame_period, min(RENDER_DUTY * self._render_s, self.max_interval)))
         exposed = self.clock.now()  # the pose is sampled now; rendering takes real time on a real clock

@@ -23,9 +23,10 @@ own staleness rule (20 ms) fires long before libfranka's ~1 s network timeout.
 `seq` is the controller's millisecond counter and `robot_time` its time (s).
 After `link_timeout` without a fresh state, `state()` raises DriverError and the
 robot object is dead; `reconnect()` (or `recover()`) connects a new one.
-At rest the driver keeps a zero-velocity motion running (`idle_hold`), so the
-same holds while the arm waits and a state read never becomes libfranka's
-blocking `readOnce`. `T_base_flange` comes from our kinematic model; `reported_T_base_flange()` is
+At rest the driver holds the arm actively (`idle_hold`: a thread sends, every
+`send_period`, the velocity that pulls the joints back to the hold posture), so
+motions keep running, the same holds while the arm waits and a state read never
+becomes libfranka's blocking `readOnce`. `T_base_flange` comes from our kinematic model; `reported_T_base_flange()` is
 the controller's own (franky's `O_T_EE` times the inverse of its `F_T_EE`).
 
 Scheduling. libfranka's constructor puts its calling thread on SCHED_FIFO 99 (even with
@@ -60,7 +61,6 @@ from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, R
 
 COMMAND_MODES = ("velocity", "position", "position_velocity")
 STALE_STATE_S = 0.02  # s: a robot state older than this steers no new motion (the supervisor's gap rule)
-HOLD_MS = 24 * 3600 * 1000  # the idle hold's duration (a zero-velocity motion)
 SETTLE_TOLERANCE = 0.5e-3  # rad per joint: where a setup move ends (the arc's start accepts 1 mrad)
 # s the error must stay within SETTLE_TOLERANCE: a position window, not a speed test (franky-sim's joint 7
 # chatters at +-77 mrad/s with a 0.1 mrad amplitude when at rest)
@@ -345,9 +345,7 @@ class FrankaRobot(Robot):
         t0 = self.clock.now()
         inside_since: float | None = None
         while True:
-            with self._io:
-                self._raise_hold_error()
-                err = q - self.state().q
+            err = q - self.state().q  # raises what the hold thread met
             worst = float(np.max(np.abs(err)))
             now = self.clock.now()
             if worst > SETTLE_TOLERANCE:
@@ -431,22 +429,26 @@ class FrankaRobot(Robot):
                              f"(more than {self.max_tracking_error} rad)")
         v = self._stream_velocity(q, now) + np.clip(self.gain * err, -self.max_correction, self.max_correction)
         v = np.clip(v, -self._v_max, self._v_max)
+        return self._deadman_motion(v)
+
+    def _deadman_motion(self, v: np.ndarray) -> franky.JointVelocityMotion:
+        """Joint velocities `v`, held for `deadman` (then the controller brakes unless a new motion came)."""
         return franky.JointVelocityMotion(v, duration=franky.Duration(int(round(self.deadman * 1000))))
 
+    @_serialized
     def stop(self) -> None:
         """Brake to rest from the current motion state (franky's stop motion), then hold there."""
-        with self._io:
-            robot = self._live()
-            self._reset_stream()
-            try:
-                if self._holding and robot.is_in_control:
-                    return  # already at rest, held
-                self._brake(robot)
-                self._hold(robot)
-            except (DriverError, RobotFault):
-                raise
-            except Exception as exc:  # noqa: BLE001
-                raise self._fail(exc, "the controlled stop") from exc
+        robot = self._live()
+        self._reset_stream()
+        try:
+            if self._holding and robot.is_in_control:
+                return  # already at rest, held
+            self._brake(robot)
+            self._hold(robot)
+        except (DriverError, RobotFault):
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise self._fail(exc, "the controlled stop") from exc
 
     @property
     def holding(self) -> bool:
@@ -489,8 +491,7 @@ class FrankaRobot(Robot):
         if self.clock.now() - self._fresh_t > STALE_STATE_S:
             return  # nothing fresh to steer by: the running motion's dead-man hold runs out instead
         v = np.clip(self.gain * (self._hold_q - st.q), -SETTLE_SPEED, SETTLE_SPEED)
-        self._move(robot, franky.JointVelocityMotion(v, duration=franky.Duration(int(round(self.deadman * 1000)))),
-                   asynchronous=True)
+        self._move(robot, self._deadman_motion(v), asynchronous=True)
 
     def _hold_loop(self) -> None:
         """The hold thread: one correction every `send_period` while holding; ends with the driver."""

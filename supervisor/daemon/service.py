@@ -365,9 +365,9 @@ class Daemon:
             pivot = (self.sup.model.T_base_target @ np.append(self.sup.model.centroid, 1.0))[:3]
         # Every arc starts at the model view; after a run the arm rests where it halted: move back first (a
         # planned, checked setup move away from the boundary, part of this explicit request).
-        kin, robot = self.drivers.kin, self.drivers.robot
-        q_start = self.sup.setup_goal(self.sup.T_base_cam_model, robot.state().q)
-        if np.max(np.abs(q_start - robot.state().q)) > START_TOLERANCE:
+        q_now = self.drivers.robot.state().q
+        q_start = self.sup.setup_goal(self.sup.T_base_cam_model, q_now)
+        if np.max(np.abs(q_start - q_now)) > START_TOLERANCE:
             self._log("return_to_start")
             self.sup.move_camera_to(self.sup.T_base_cam_model)
         plan = self.sup.plan_arc(pivot, math.radians(az), None if sweep is None else math.radians(sweep))

@@ -149,11 +149,12 @@ def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIOR
     hand the GIL back within 0.2 ms instead of 5 ms) and, where permitted (root, CAP_SYS_NICE or an
     RLIMIT_RTPRIO), the SCHED_FIFO real-time policy for this thread.
 
-    The process's other light Python threads (capture, result collector, event writer, queue feeders) go to
+    The process's other Python threads (capture, result collector, event writer, queue feeders, the
+    predictor's fits, the session writer; not the thread worker's localizers, see `_compute_bound`) go to
     SCHED_FIFO `helpers` (1, the lowest real-time priority) for the run: each holds the GIL now and then,
     and an ordinary thread holding it can be preempted by any other process for a scheduler slice, which
     kept the tick from its GIL for 20-50 ms on a loaded 2-core machine (a robot-state gap). At the lowest
-    real-time priority they run whenever runnable; they are short and mostly blocked, and the tick still
+    real-time priority they run whenever runnable; they compute in short bursts or block, and the tick still
     preempts them. Returns what was applied, for the event log; `realtime_thread_restore(that)` puts every
     thread back as it was."""
     import sys
@@ -479,7 +480,7 @@ class Supervisor:
         """Stop the capture thread and the localization processes (the drivers belong to the caller)."""
         self.frames.close()
         if self._process_worker is not None:
-            # the localization processes keep nothing worth waiting for: a short join, then terminate (each took
-            # 0.6 s to tear down its interpreter, a third of a SIGTERM's 2 s to exit)
+            # the localization processes keep nothing worth waiting for: a short join, then terminate (a SIGTERM
+            # must see the daemon exit within 2 s)
             self._process_worker.close(timeout=0.25)
             self._process_worker = None
