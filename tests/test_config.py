@@ -11,7 +11,7 @@ from supervisor.paths import DEFAULT_CONFIG
 def test_default_config_loads_in_si():
     cfg = load_config()
     assert cfg.camera.intrinsics.width == 1280 and cfg.camera.intrinsics.height == 1024
-    assert cfg.robot.control_period_s == pytest.approx(0.001)
+    assert cfg.robot.control_period_s == pytest.approx(0.004)
     assert cfg.robot.q_start[3] == pytest.approx(math.radians(-135))
     assert np.allclose(cfg.camera.T_flange_cam[:3, 3], [0.05, 0.0, 0.05])
     assert cfg.dataset.model_baseline == pytest.approx(0.02)
@@ -35,7 +35,7 @@ def _variant(tmp_path, old, new):
         ("  ratio: 0.8", "  ratio: 0.8\n  ratioo: 0.7", "localization.ratioo", "unknown key"),
         ("  matcher: flann", "  matcher: kd", "localization.matcher", "expected one of"),
         ("    step_deg: 2.25", "    step_deg: no", "dataset.arc.step_deg", "boolean"),
-        ("  control_rate_hz: 1000", "  control_rate_hz: 1000\n  control_rate_hz: 500", "", "duplicate key"),
+        ("  control_rate_hz: 250", "  control_rate_hz: 250\n  control_rate_hz: 500", "", "duplicate key"),
         ("  q_start_deg: [0, -45, 0, -135, 0, 90, 45]", "  q_start_deg: [0, -45, 0]", "robot.q_start_deg",
          "list of 7"),
     ],
