@@ -222,7 +222,7 @@ class _SlowPredictor:
 def test_on_the_real_clock_a_slow_fit_runs_off_the_tick(threaded):
     """With ThreadFits the control ticks go on while a fit runs; inline, no tick runs during a fit. Counted
     from the ticks' own times, not from deadlines, so a loaded machine cannot decide the outcome."""
-    from supervisor.runtime.loop import ThreadFits
+    from supervisor.runtime.fits import ThreadFits
 
     clock = MonotonicClock()
     # no overrun or state-gap verdicts here: a loaded machine's stalls are not what this test is about

@@ -36,7 +36,8 @@ from supervisor.motion.plan import MotionRejected, PathCheck, PathFollower, chec
 from supervisor.prediction import make_predictor
 from supervisor.runtime.capture import CaptureThread, InlineFrames
 from supervisor.runtime.events import EventLog
-from supervisor.runtime.loop import RunRecord, SupervisorLoop, ThreadFits
+from supervisor.runtime.fits import ProcessFits
+from supervisor.runtime.loop import RunRecord, SupervisorLoop
 from supervisor.runtime.pacer import SimPacer, TickPacer
 from supervisor.runtime.protocols import CameraDriver, RobotDriver
 from supervisor.runtime.worker import InlineWorker, ProcessWorker, ThreadWorker
@@ -150,7 +151,7 @@ def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIOR
     RLIMIT_RTPRIO), the SCHED_FIFO real-time policy for this thread.
 
     The process's other Python threads (capture, result collector, event writer, queue feeders, the
-    predictor's fits, the session writer; not the thread worker's localizers, see `_compute_bound`) go to
+    session writer; not the thread worker's localizers, see `_compute_bound`) go to
     SCHED_FIFO `helpers` (1, the lowest real-time priority) for the run: each holds the GIL now and then,
     and an ordinary thread holding it can be preempted by any other process for a scheduler slice, which
     kept the tick from its GIL for 20-50 ms on a loaded 2-core machine (a robot-state gap). At the lowest
@@ -194,9 +195,9 @@ def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIOR
 def _compute_bound(name: str) -> bool:
     """The thread worker's localizers stay ordinary: they compute without pause (SIFT on every frame), which
     on SCHED_FIFO would take the cores from everything else and count against the kernel's real-time
-    budget. The predictor's fits and the session writer compute in bursts: they are lifted with the rest,
-    since an ordinary thread holding the GIL when another process preempts it holds up the tick (measured:
-    a fit's numpy call stretched to 54 ms, a 22 ms state gap)."""
+    budget. The session writer computes in bursts: it is lifted with the rest, since an ordinary thread
+    holding the GIL when another process preempts it holds up the tick (measured: a fit's numpy call on a
+    thread stretched to 54 ms, a 22 ms state gap; the fits now run in a process, see runtime.fits)."""
     return name.startswith("localize-") and name != "localize-results"
 
 
@@ -262,6 +263,7 @@ class Supervisor:
         if self.worker_kind == "inline" and drivers.realtime:
             raise ValueError("the inline worker computes inside the tick: not on the real clock")
         self._process_worker: ProcessWorker | None = None
+        self._fits: ProcessFits | None = None  # the real clock's fit process (see runtime.fits)
         self._stage = stage if isinstance(stage, StageConfig) else cfg.stage(stage)
         d = drivers
         self.frames = CaptureThread(d.camera, d.clock, grab_timeout=cfg.camera.timeout_s) if d.realtime \
@@ -421,7 +423,7 @@ class Supervisor:
                                   s_end=plan.s_end, frame_period=cfg.camera.frame_period_s,
                                   reference_point=self.model.centroid, pacer=pacer, heartbeat=heartbeat, on_brake=on_brake,
                                   observer=observer,
-                                  fits=ThreadFits(predictor) if d.realtime else None)
+                                  fits=self._fits_for_run(predictor) if d.realtime else None)
             with self._lock:
                 self._loop = loop
             rt = None
@@ -461,6 +463,12 @@ class Supervisor:
             return ThreadWorker(self.model, cfg.localization, d.clock, threads=self.workers)
         return InlineWorker(self.model, cfg.localization, self.latency_scale)
 
+    def _fits_for_run(self, predictor) -> ProcessFits:
+        """The long-lived fit process (started at the first real-clock run), handed this run's predictor."""
+        if self._fits is None:
+            self._fits = ProcessFits()
+        return self._fits.start_run(predictor)
+
     def theta_allowed(self) -> float | None:
         """The running motion's allowance (rad), or None when nothing is moving."""
         with self._lock:
@@ -484,3 +492,6 @@ class Supervisor:
             # must see the daemon exit within 2 s)
             self._process_worker.close(timeout=0.25)
             self._process_worker = None
+        if self._fits is not None:
+            self._fits.shutdown()
+            self._fits = None

@@ -56,6 +56,7 @@ from supervisor.localization.localizer import predict_target_pose
 from supervisor.motion.gate import Gate
 from supervisor.motion.plan import MotionRejected, PathFollower
 from supervisor.runtime.events import EventLog
+from supervisor.runtime.fits import InlineFits
 from supervisor.runtime.history import StateHistory
 from supervisor.runtime.pacer import SimPacer
 from supervisor.runtime.protocols import FrameSource, Kinematics, LocalizationWorker, RobotDriver
@@ -137,71 +138,6 @@ class RunRecord:
     trajectory_s: list[float] = field(default_factory=list)
     trajectory_q: list[np.ndarray] = field(default_factory=list)
     fits: list[dict[str, Any]] = field(default_factory=list)  # per predictor update
-
-
-def _update(predictor, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None):
-    """One predictor update; the step's pose uncertainty goes to the predictors that model it."""
-    if getattr(predictor, "needs_err", False):
-        return predictor.update(xs, ns, err=err)
-    return predictor.update(xs, ns)
-
-
-class InlineFits:
-    """The predictor's fits where the loop asks for them (simulated time: deterministic)."""
-
-    def __init__(self, predictor) -> None:
-        self.predictor = predictor
-        self._done: dict[int, tuple[object, BaseException | None]] = {}
-
-    def submit(self, step: int, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> None:
-        try:
-            self._done[step] = (_update(self.predictor, xs, ns, err), None)
-        except Exception as exc:  # noqa: BLE001 - handed to the loop, which treats it as no valid model
-            self._done[step] = (None, exc)
-
-    def take(self, step: int):
-        """(prediction, exception) once the fit for `step` is done, else None."""
-        return self._done.pop(step, None)
-
-    def close(self) -> None:
-        pass
-
-
-class ThreadFits(InlineFits):
-    """The predictor's fits on a thread of their own (real clock): a 1-3 ms curve fit must not hold up a
-    1 ms tick. Fits run in step order; the loop applies each when it is done."""
-
-    def __init__(self, predictor) -> None:
-        super().__init__(predictor)
-        import queue as _queue
-
-        self._lock = threading.Lock()
-        self._jobs: _queue.Queue = _queue.Queue()
-        self._thread = threading.Thread(target=self._run, name="predictor", daemon=True)
-        self._thread.start()
-
-    def submit(self, step: int, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None = None) -> None:
-        self._jobs.put((step, xs, ns, err))
-
-    def _run(self) -> None:
-        while True:
-            job = self._jobs.get()
-            if job is None:
-                return
-            step, xs, ns, err = job
-            try:
-                out = (_update(self.predictor, xs, ns, err), None)
-            except Exception as exc:  # noqa: BLE001
-                out = (None, exc)
-            with self._lock:
-                self._done[step] = out
-
-    def take(self, step: int):
-        with self._lock:
-            return self._done.pop(step, None)
-
-    def close(self) -> None:
-        self._jobs.put(None)
 
 
 class _RobotLost(Exception):
