@@ -14,7 +14,7 @@ angle while the arm moves away from the start view (a setup move back to the sta
       non_orthonormal_rotation the flange rotation is scaled by 1.01
       joints_out_of_limits     joint 6 reads 0.1 rad beyond its upper limit
       robot_time_backwards     the state time reads 50 ms earlier
-      cpu_starved              every command takes 3 ms longer (the tick overruns its 1 ms period)
+      cpu_starved              every command takes 1.5 control periods longer (the tick overruns its period)
     camera (what the sim camera delivers; rendered from the true pose):
       camera_disconnect        every grab raises DriverError (the device is gone)
       frame_stall              no frame: every grab times out (CameraTimeout)
@@ -41,7 +41,7 @@ from supervisor.config import FAULT_KINDS, FaultSpec
 
 STALE_AGE = 0.5  # s: how old a stale_timestamp frame claims to be
 BACKWARDS_STEP = 0.05  # s: how far robot_time_backwards / camera_time_backwards go back
-TICK_DELAY = 0.003  # s: cpu_starved's extra time per command
+TICK_DELAY_PERIODS = 1.5  # cpu_starved's extra time per command, in control periods (6 ms at 250 Hz)
 OUT_OF_LIMIT = 0.1  # rad beyond joint 6's upper limit
 
 

@@ -24,7 +24,7 @@ from supervisor.arm.state import RobotState
 from supervisor.clock import Clock, SimClock
 from supervisor.errors import JointLimitError, KinematicsError, RobotFault
 from supervisor.motion.joint_move import REL_V, TOL, check_joint_plan, plan_joint_move, sample_ruckig
-from sim.faults import TICK_DELAY
+from sim.faults import TICK_DELAY_PERIODS
 
 ANGLE_EVERY = 4  # ticks: how often an at_angle_deg trigger is evaluated (4 ms: 0.04 deg at 10 deg/s)
 
@@ -174,7 +174,7 @@ class SimRobot:
         else:
             self._frozen = None
         if kind == "cpu_starved" and self.clock is not None:
-            self.clock.sleep(TICK_DELAY)
+            self.clock.sleep(TICK_DELAY_PERIODS * self.dt)
 
     def hold(self, ticks: int = 1) -> RobotState:
         """Command the current position for `ticks` ticks (time passes, nothing moves)."""

@@ -33,15 +33,20 @@ def config_with(tmp: Path, extra: str, name: str = "cfg.yaml", replace: dict[str
     return p
 
 
-def lenient_overruns(tmp: Path, name: str = "lenient.yaml", budget: int = 50) -> Path:
-    """The default config with every stage's overrun budget at `budget` (shipped: 3). For the tests of what
-    the daemon does while the arm moves (stop, SIGTERM, recording): on this shared 2-core VM the 1 kHz tick
-    missed 3 deadlines in a row within a second of some runs even at load ~2, which is a correct latched
-    halt but leaves nothing moving to test. The overrun rule itself is tested at loop level
-    (tests/test_loop_failsafe.py, injected 3 ms stalls) and with the shipped budget by the other daemon tests."""
+def lenient_timing(tmp: Path, name: str = "lenient.yaml", budget: int = 50) -> Path:
+    """The default config with every stage's overrun budget at `budget` (shipped: 3), frame timeout 1 s (200 ms)
+    and localization timeout 5 s (1 s). For the tests of what the daemon does while the arm moves (stop,
+    SIGTERM, a gated run): on this shared 2-core VM the sim camera's renderer and a localization process
+    compete for the cores, and a loaded machine trips the shipped limits by itself now and then (a render
+    slowed past 200 ms, 3 late ticks in a row): a correct latched halt, but nothing left moving to test. The
+    shipped limits are tested at loop level (tests/test_loop_failsafe.py) and by the daemon tests that use
+    the default config as shipped."""
     text = DEFAULT_CONFIG.read_text()
-    assert text.count("    pose_gap_ms: 20") == 4, "one pose_gap_ms per stage"
-    return config_with(tmp, "", name, {"    pose_gap_ms: 20": f"    pose_gap_ms: 20\n    overrun_budget: {budget}"})
+    for key in ("    pose_gap_ms: 20", "    frame_timeout_ms: 200", "    localization_timeout_ms: 1000"):
+        assert text.count(key) == 4, f"one {key.strip()} per stage"
+    return config_with(tmp, "", name, {"    pose_gap_ms: 20": f"    pose_gap_ms: 20\n    overrun_budget: {budget}",
+                                        "    frame_timeout_ms: 200": "    frame_timeout_ms: 1000",
+                                        "    localization_timeout_ms: 1000": "    localization_timeout_ms: 5000"})
 
 
 class Notify:

@@ -167,12 +167,13 @@ def test_a_quota_below_one_frame_records_nothing_raises_an_alarm_and_leaves_the_
 
 
 FULL_DISK = r"""
-import json, math, resource, signal, sys
+import dataclasses, json, math, resource, signal, sys
 from pathlib import Path
 sys.path.insert(0, sys.argv[2])
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead of killing us
 from test_recorder import Rig, _config
-rig = Rig(_config())
+cfg = _config()  # at 1 kHz: states.csv passes 1 MB within the short arc (250 Hz writes a quarter of that)
+rig = Rig(dataclasses.replace(cfg, robot=dataclasses.replace(cfg.robot, control_period_s=0.001)))
 plain, _, _ = rig.run(None, sweep=math.radians(4.5))
 resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, resource.RLIM_INFINITY))  # no file beyond 1 MB
 record, rec, events = rig.run(Path(sys.argv[1]), sweep=math.radians(4.5), state_period=0.0)
