@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from daemon_harness import START_TIMEOUT, SUPERVISOR, DaemonProc, config_with
+from daemon_harness import START_TIMEOUT, SUPERVISOR, DaemonProc, config_with, lenient_timing
 
-ATTEMPTS = 5  # runs that may fault at their first tick on a loaded machine (see the report) before one moves
+ATTEMPTS = 5  # runs that may halt by themselves on a loaded machine before one is seen moving
 GROUP = "239.74.163.12"  # IPv4 multicast group, routed to the namespace's loopback only
 
 
@@ -62,7 +62,9 @@ def _moving(d: DaemonProc, settle: float) -> bool:
 
 @pytest.mark.slow
 def test_external_stop_latches_and_sigkill_trips_the_monitor_in_another_process(tmp_path):
-    cfg = config_with(tmp_path, f"can:\n  interface: udp_multicast\n  channel: {GROUP}\n")
+    # timing limits relaxed (lenient_timing): the arm must be moving when the kill comes, and a loaded machine
+    # faulted every run at its first tick on the shipped frame timeout (the sim renderer beside localization)
+    cfg = lenient_timing(tmp_path, extra=f"can:\n  interface: udp_multicast\n  channel: {GROUP}\n")
     d = DaemonProc(tmp_path, config=cfg, netns=True)
     mon = None
     mon_out = tmp_path / "monitor.out"
@@ -81,12 +83,12 @@ def test_external_stop_latches_and_sigkill_trips_the_monitor_in_another_process(
         assert any(e["kind"] == "external_stop" for e in d.events())
 
         # 2. SIGKILL mid-motion: nothing can be caught; the consumer's timeout must notice
-        moving = False
+        moving, last_halt = False, None
         for _ in range(ATTEMPTS):
             moving = _moving(d, 0.5)
             if moving:
                 break
-            d.req({"cmd": "wait", "timeout": 60})
+            last_halt = d.req({"cmd": "wait", "timeout": 60}).get("summary", {}).get("halt_reason")
         state = d.req({"cmd": "status"})["state"]
         # the monitor starts now: requests handled on the daemon's main thread (a model build's setup motions,
         # planning an arc) pause the idle loop's heartbeat, and a consumer running then would trip on them
@@ -113,8 +115,8 @@ def test_external_stop_latches_and_sigkill_trips_the_monitor_in_another_process(
         assert "first heartbeat" in text and "rejected 0" in text, text
         assert t_kill < t_trip <= t_kill + 0.1 + 0.02, text  # within 100 ms (+ scheduling on a loaded machine)
         if state != "moving":
-            pytest.skip(f"SIGKILL trip checked with the daemon {state}, not mid-motion: every run faulted at its "
-                        f"first tick (fault:pose_unknown, the loop's; see tests/test_can_process.py for mid-motion)")
+            pytest.skip(f"SIGKILL trip checked with the daemon {state}, not mid-motion: every run halted before the "
+                        f"kill ({last_halt}; see tests/test_can_process.py for mid-motion)")
     finally:
         if mon is not None and mon.poll() is None:
             os.kill(mon.pid, signal.SIGTERM)
