@@ -440,7 +440,7 @@ class SupervisorLoop:
             self.robot.stop()
             st = self.robot.state()  # where the driver's stop left the arm: part of the executed trajectory
             if not state_problem(st, self._q_min, self._q_max, None):
-                self.record.trajectory_t.append(float(st.t))
+                self.record.trajectory_t.append(self.clock.now())
                 self.record.trajectory_s.append(self.follower.state.s)
                 self.record.trajectory_q.append(np.array(st.q, float))
         except Exception as exc:  # noqa: BLE001 - nothing more to do: the robot's own reflexes still apply
@@ -582,7 +582,8 @@ class SupervisorLoop:
         except Exception as exc:  # noqa: BLE001 - RobotFault, DriverError, vendor errors
             raise _RobotLost("command_rejected", f"{type(exc).__name__}: {exc}") from exc
         executed = self._read_state(now)
-        self.record.trajectory_t.append(executed.t)
+        # keyed on the tick's time, the clock the allowances are recorded on (never the robot's own stamp)
+        self.record.trajectory_t.append(now)
         self.record.trajectory_s.append(self.follower.state.s)
         self.record.trajectory_q.append(np.array(executed.q, float))
         return False
