@@ -35,8 +35,13 @@ FAMILIES = {
     "fw_lcb": ("fw_lcb",),
     "local_lcb": ("local_lcb",),
     "lcb": ("lcb",),
+    "lcb_drop": ("lcb_drop",),
+    "fw_lcb_drop": ("fw_lcb_drop",),
+    "logfit_lcb_drop": ("logfit_lcb_drop",),
     "choose:logfit_lcb+fw_lcb+local_lcb": ("logfit_lcb", "fw_lcb", "local_lcb"),
     "choose:lcb+logfit_lcb+fw_lcb+local_lcb": ("lcb", "logfit_lcb", "fw_lcb", "local_lcb"),
+    "choose:lcb_drop+logfit_lcb_drop+fw_lcb_drop": ("lcb_drop", "logfit_lcb_drop", "fw_lcb_drop"),
+    "choose:all_lcb": ("lcb", "logfit_lcb", "fw_lcb", "local_lcb", "lcb_drop", "logfit_lcb_drop", "fw_lcb_drop"),
 }
 
 

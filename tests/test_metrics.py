@@ -83,3 +83,32 @@ def test_ceiling_is_the_mean_over_the_earliest_actual_boundary_and_bounds_every_
     assert c["min_actual"] == pytest.approx(10.0) and c["mean_actual"] == pytest.approx(25.0)
     assert c["max_improvement_over_static"] == pytest.approx(1.5)  # 25 / 10 - 1
     assert _ceiling(res, "line") == {}
+
+
+def test_offline_drop_detector_stops_where_the_live_predictor_does_and_before_its_base_at_a_cliff():
+    from supervisor.evaluation.experiments import N_T, evaluate_dataset
+    from supervisor.localization.offline import FrameArtifact
+    from supervisor.prediction import make_predictor
+
+    # a plateau of ~300 inliers to 27 deg, then an occlusion cliff (e-fold every 2.5 deg)
+    rows, per_pos = [], []
+    for p in range(21):
+        deg = 2.25 * p
+        ns = [max(0, int(round((300 if deg < 27 else 300 * math.exp(-(deg - 27) * 0.4)) * f))) for f in (0.95, 1, 1.05)]
+        per_pos.append((deg, ns))
+        for i, n in enumerate(ns):
+            rows.append(FrameArtifact(3 * p + i, p, math.radians(deg), 0.0, n, n + 10, 0.0002, math.radians(0.05),
+                                      0.5, "OK", 0.05, {}, None, 0.0001, math.radians(0.1)))
+    r = evaluate_dataset("cliff", "arc", rows)
+    k = N_T.index(15)
+    drop, base = r.stops["next_step_lcb_drop"][k], r.stops["next_step_lcb"][k]
+    assert drop < base
+    assert math.degrees(drop) < 27 + math.log(301 / 16) / 0.4  # before n_i reaches 15
+    pred = make_predictor("next_step", "lcb_drop", 15, math.radians(2.25))
+    live = None
+    for p, (deg, ns) in enumerate(per_pos):
+        out = pred.update(np.radians(np.full(3, deg)), np.array(ns, float))
+        if p >= 3 and not out.allow_next:  # the warm-up: the first 4 positions are sampled regardless
+            live = math.radians(deg)
+            break
+    assert live == pytest.approx(drop)

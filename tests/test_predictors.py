@@ -10,7 +10,7 @@ import pytest
 
 from supervisor.prediction import make_predictor
 from supervisor.prediction.emg import boundary, emg
-from supervisor.prediction.models import VARIANTS, fit_variant
+from supervisor.prediction.models import VARIANTS, fit_drop, fit_variant, with_drop
 
 # Four positions of the simulated box_fine arc (azimuth 90 deg): only the decaying side is visible.
 TAIL_X = np.repeat([0.0, 2.25, 4.499, 6.749], 3)
@@ -41,8 +41,11 @@ def test_observation_guard_stops_when_the_frames_here_are_already_below_threshol
     assert fit_variant("paper", x, n).boundary(150, 40.5, 45.0) == 45.0  # late: non-conservative
     for variant in VARIANTS[1:]:
         assert fit_variant(variant, x, n).boundary(150, 40.5, 45.0) == 40.5
-        if not variant.startswith("local"):  # the local rate sees the drop without the guard
-            assert fit_variant(variant, x, n, guard=False).boundary(150, 40.5, 45.0) > 40.5
+        unguarded = fit_variant(variant, x, n, guard=False).boundary(150, 40.5, 45.0)
+        if variant.endswith("_drop"):  # the drop detector sees the fall without the guard
+            assert unguarded == 40.5
+        elif not variant.startswith("local"):  # (so does the local rate, nearly)
+            assert unguarded > 40.5
 
 
 def test_confidence_band_is_cautious_even_when_the_point_estimate_never_falls_in_range():
@@ -93,3 +96,37 @@ def test_next_step_predictor_reports_the_fitted_width_and_is_deterministic():
 def test_unknown_variant_is_a_misuse_error():
     with pytest.raises(ValueError, match="unknown model variant"):
         fit_variant("best", TAIL_X, TAIL_N)
+
+
+def test_drop_detector_reads_a_cliff_that_the_whole_history_fit_reads_late():
+    # A plateau of 300 inliers to 27 deg, then an occlusion cliff: n falls e-fold every 2.5 deg and
+    # reaches 15 at 34.5 deg. Seen to 31.5 deg, the curves fitted to the whole history (still
+    # dominated by the plateau) put the boundary late or never; the last step's fall does not.
+    x = np.repeat(np.arange(0, 31.6, 2.25), 3)
+    n = np.where(x < 27, 300.0, 300 * np.exp(-(x - 27) * 0.4)) * (1 + 0.05 * np.tile([-1, 0, 1], len(x) // 3))
+    truth = 27 + math.log(20) / 0.4
+    for base in ("lcb", "fw_lcb"):
+        late = fit_variant(base, x, n).boundary(15, 31.5, 45.0)
+        drop = fit_variant(f"{base}_drop", x, n).boundary(15, 31.5, 45.0)
+        assert late > truth + 4.0, (base, late)
+        assert 31.5 < drop <= truth, (base, drop)
+    # On the plateau itself the detector stays out of the way: the boundary is the base's.
+    xp, np_ = x[x < 27], n[x < 27]
+    for base in ("lcb", "fw_lcb"):
+        assert fit_variant(f"{base}_drop", xp, np_).boundary(15, xp.max(), 45.0) == pytest.approx(
+            fit_variant(base, xp, np_).boundary(15, xp.max(), 45.0), abs=1e-9)
+
+
+def test_drop_detector_needs_two_positions_and_extends_only_its_bases():
+    x, n = np.full(3, 4.5), np.array([100.0, 110.0, 90.0])
+    assert fit_drop(x, n) is None
+    with pytest.raises(ValueError, match="drop detector"):
+        with_drop(fit_variant("local_lcb", TAIL_X, TAIL_N), TAIL_X, TAIL_N)
+    # a fall of the same size from a noisier step is read later (a wider band) but still before the rate alone
+    x2 = np.repeat([0.0, 2.25], 3)
+    quiet = fit_drop(x2, np.array([200, 201, 199, 100, 101, 99], float))
+    noisy = fit_drop(x2, np.array([150, 200, 250, 60, 100, 140], float))
+    assert quiet is not None and noisy is not None
+    assert quiet.rate == pytest.approx(noisy.rate, rel=0.05)
+    point = 2.25 + (math.log1p(15) - quiet.level) / quiet.rate
+    assert 2.25 < noisy.boundary(15, 2.25, 45.0, 1.645) < quiet.boundary(15, 2.25, 45.0, 1.645) < point

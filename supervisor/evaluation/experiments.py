@@ -44,7 +44,7 @@ from supervisor.evaluation.metrics import CurvePoint, actual_boundary, max_mean_
 from supervisor.prediction.emg import ANGLE, TRANSLATION
 from supervisor.prediction.errorbound import KAPPAS, ErrorTrend, log_margin, position_log_sd
 from supervisor.prediction.mlp import MLPPredictor
-from supervisor.prediction.models import VARIANTS, fit_variant
+from supervisor.prediction.models import VARIANTS, ModelFit, fit_variant, with_drop
 
 TOLERANCES = {"2mm_3deg": (0.002, math.radians(3.0)), "4mm_10deg": (0.004, math.radians(10.0))}
 N_T = tuple(range(4, 101))
@@ -53,7 +53,7 @@ STATIC_LINE = tuple(np.arange(0.0, 0.150 + 1e-9, 0.001))
 K_POSITIONS = {"arc": 4, "line": 5}
 IMPROVED = tuple(v for v in VARIANTS if v != "paper")
 GUARD_FRACTION = 0.5  # consistency-guard limits as a fraction of the tolerance (the shipped stages: 2 mm/5 deg)
-ERR_BASES = ("logfit_lcb", "fw_lcb", "local_lcb")  # n_i systems evaluated with the error-aware boundary
+ERR_BASES = ("logfit_lcb", "fw_lcb", "local_lcb", "fw_lcb_drop")  # n_i systems evaluated with the error-aware boundary
 
 
 def systems() -> list[str]:
@@ -165,16 +165,25 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     def prefix(k: int) -> tuple[np.ndarray, np.ndarray]:
         return axis.to_fit(np.concatenate(xsamp[:k + 1])), np.concatenate(nsamp[:k + 1])
 
+    all_fits: dict[str, tuple[ModelFit, list[ModelFit | None]]] = {}
     for variant in VARIANTS:
         suffix = "" if variant == "paper" else f"_{variant}"
+        if variant.endswith("_drop"):  # the base variant's fits plus the drop detector: no second fit
+            base_lr, base_fits = all_fits[variant.removesuffix("_drop")]
+            mf = with_drop(base_lr, *prefix(k_lr - 1))
+            fits = [None if f is None else with_drop(f, *prefix(k)) for k, f in enumerate(base_fits)]
+        else:
+            # offline: no time budget, so that results never depend on the machine's load
+            mf = fit_variant(variant, *prefix(k_lr - 1), time_budget_s=math.inf)
+            # Next step: a fit after every position (the rule applied per n_t below). Warm-up as in the
+            # supervisor loop: the first k positions are sampled whatever the fits say.
+            fits = [fit_variant(variant, *prefix(k), time_budget_s=math.inf) if k + 1 >= k_lr else None
+                    for k in range(len(x))]
+        all_fits[variant] = (mf, fits)
         # Long range: one fit on the first k positions.
-        mf = fit_variant(variant, *prefix(k_lr - 1), time_budget_s=math.inf)  # offline: never load-dependent
         x_now = float(xf[k_lr - 1])
         stops[f"long_range{suffix}"] = [axis.to_si(mf.boundary(nt, x_now, xmax_f)) if mf.ok else float(x[k_lr - 1])
                                         for nt in N_T]
-        # Next step: a fit after every position, the rule applied per n_t.
-        # Warm-up as in the supervisor loop: the first k positions are sampled whatever the fits say.
-        fits = [fit_variant(variant, *prefix(k), time_budget_s=math.inf) if k + 1 >= k_lr else None for k in range(len(x))]
         step = float(np.median(np.diff(xf)))
         out = []
         for nt in N_T:

@@ -24,7 +24,7 @@ from supervisor.prediction.models import first_crossing
 
 ERR_WINDOW = 4  # positions
 Z_ERR = 1.645  # one-sided 95%
-KAPPAS = (0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0, 5.6, 8.0, 11.0, 16.0, 22.0, 32.0)  # the operating points swept
+KAPPAS = (0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0, 5.6, 8.0, 11.0, 16.0, 22.0, 32.0)  # the operating points swept
 
 
 def position_log_sd(sd: np.ndarray) -> float:

@@ -25,6 +25,14 @@ fit. Variants (selectable by name per stage):
   such boundaries late). Falls back to ``logfit`` when four parameters are not
   determined (fewer than 5 positions, or a singular fit).
 
+- ``<v>_drop`` for v in ``DROP_BASES`` (``lcb``, ``logfit_lcb``, ``fw_lcb``): the base variant plus a drop
+  detector. The last step's fall in log(n_i + 1) (the two furthest positions' frame means) is
+  carried one step on at the same rate, with a one-sided 95% band from the frames' spread, and the
+  boundary is the earlier of the base's and where that extrapolation reaches n_t. At an occlusion
+  or washout cliff a step that lost a large fraction of the inliers predicts the next fall, which a
+  curve fitted to the whole history (still dominated by the plateau) reads too late; on a plateau
+  the rate is ~0 and the term is far away.
+
 - ``local`` / ``local_lcb``: the observed local decay rate. A straight line in log(n_i + 1)
   through the last `LOCAL_POSITIONS` sampling positions only (the exponential-tail model,
   refitted on a sliding window), read like the tail fallback. A log-concave decay (a plateau,
@@ -49,6 +57,7 @@ samples, NaN, one x, constant n) stay "no valid model" in every variant.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -61,7 +70,9 @@ from supervisor.prediction.emg import (Bounds, FitResult, boundary, emg, emg_jac
                                        log_emg, log_emg_gradient, peak_location, sample_problem, solve_lsq)
 
 Z_LCB = 1.645
-VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb", "fw", "fw_lcb", "local", "local_lcb")
+DROP_BASES = ("lcb", "logfit_lcb", "fw_lcb")  # variants offered with the drop detector
+VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb", "fw", "fw_lcb", "local", "local_lcb",
+            *(f"{v}_drop" for v in DROP_BASES))
 LOCAL_POSITIONS = 4  # sampling positions in the window of the local-rate variants
 _GRID = 121  # scan points for the first crossing of a confidence band
 GUARD_TOL = 0.1  # fit units (deg, mm): frames this close to the furthest one count as "here" (pose jitter)
@@ -112,6 +123,52 @@ def fit_tail(x: np.ndarray, n: np.ndarray) -> TailFit | str:
     return TailFit(float(beta[0]), float(beta[1]), cov)
 
 
+@dataclass(frozen=True)
+class DropRate:
+    """The last step's change of log(n + 1) (fit units): `level` = frame mean at the furthest position
+    `x`, `rate` = (level - the previous position's mean) / their distance; variances from the frames'
+    pooled spread (`cov_lr`: covariance of level and rate, both use the furthest position's mean)."""
+
+    x: float
+    level: float
+    rate: float
+    var_level: float
+    var_rate: float
+    cov_lr: float
+
+    def log_mean(self, x: np.ndarray | float) -> np.ndarray:
+        return self.level + self.rate * (np.asarray(x, float) - self.x)
+
+    def log_sd(self, x: np.ndarray | float) -> np.ndarray:
+        d = np.asarray(x, float) - self.x
+        return np.sqrt(np.maximum(self.var_level + 2.0 * d * self.cov_lr + d * d * self.var_rate, 0.0))
+
+    def boundary(self, n_t: float, x_now: float, x_max: float, z: float) -> float:
+        """Where the extrapolated fall (its z-sigma lower band) reaches n_t in [x_now, x_max]; x_max if never."""
+        level = math.log1p(n_t)
+        b = first_crossing(lambda x: self.log_mean(x) - z * self.log_sd(x) - level, x_now, x_max)
+        return x_max if b is None else b
+
+
+def fit_drop(x: np.ndarray, n: np.ndarray) -> DropRate | None:
+    """The drop detector's rate from the two furthest sampling positions (None: fewer than two)."""
+    m = last_positions(x, 2)
+    xs, ys = x[m], np.log1p(np.maximum(n[m], 0.0))
+    far = xs >= xs.max() - GUARD_TOL
+    if far.all() or not far.any():
+        return None
+    x2, x1 = float(np.mean(xs[far])), float(np.mean(xs[~far]))
+    dx = x2 - x1
+    if not dx > 0:
+        return None
+    y2, y1 = ys[far], ys[~far]
+    l2, l1 = float(np.mean(y2)), float(np.mean(y1))
+    dof = len(ys) - 2
+    s2 = float(np.sum((y2 - l2) ** 2) + np.sum((y1 - l1) ** 2)) / dof if dof > 0 else 0.0
+    v2, v1 = s2 / len(y2), s2 / len(y1)
+    return DropRate(x2, l2, (l2 - l1) / dx, v2, (v1 + v2) / (dx * dx), v2 / dx)
+
+
 def first_crossing(h, lo: float, hi: float) -> float | None:
     """The first x in [lo, hi] with h(x) <= 0 (h vectorised), refined by brentq; None if h > 0 throughout."""
     grid = np.linspace(lo, hi, _GRID)
@@ -137,17 +194,25 @@ class ModelFit:
     lcb_z: float = 0.0
     tail: TailFit | None = None
     observed: tuple[float, float] | None = None  # (x, mean n) of the furthest position: the observation guard
+    drop: DropRate | None = None  # the drop detector (``*_drop`` variants)
 
     @property
     def ok(self) -> bool:
         return self.fit.ok
 
     def boundary(self, n_t: float, x_now: float, x_max: float) -> float:
-        """theta_p in fit units (requires ok): the point estimate, or the confidence-band crossing."""
+        """theta_p in fit units (requires ok): the point estimate, or the confidence-band crossing; with
+        the drop detector, the earlier of that and the extrapolated last fall's crossing."""
         if not self.fit.ok:
             raise ValueError(f"no valid model: {self.fit.reason}")
         if not n_t > 0:
             raise ValueError(f"n_t must be > 0, got {n_t}")
+        b = self._curve_boundary(n_t, x_now, x_max)
+        if self.drop is not None and b > x_now:
+            b = min(b, max(x_now, self.drop.boundary(n_t, x_now, x_max, Z_LCB)))
+        return b
+
+    def _curve_boundary(self, n_t: float, x_now: float, x_max: float) -> float:
         if self.observed is not None and x_now >= self.observed[0] - GUARD_TOL and self.observed[1] <= n_t:
             return x_now  # the frames here are already at or below n_t, whatever the curve says
         if self.tail is not None:
@@ -222,6 +287,10 @@ def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bo
     """
     if variant not in VARIANTS:
         raise ValueError(f"unknown model variant {variant!r}; expected one of {VARIANTS}")
+    if variant.endswith("_drop"):
+        base = fit_variant(variant.removesuffix("_drop"), x, n, tail_fallback=tail_fallback, guard=guard,
+                           time_budget_s=time_budget_s)
+        return with_drop(base, x, n)
     t0 = time.perf_counter()
     x = np.asarray(x, float).ravel()
     n = np.asarray(n, float).ravel()
@@ -247,6 +316,17 @@ def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bo
     res = FitResult(True, params, None, f"ok: exponential tail (EMG {fit.reason})", fit.nfev,
                     float(np.sqrt(np.mean((emg(x, *params) - n) ** 2))), time.perf_counter() - t0, len(x))
     return ModelFit(variant, res, z, tail, obs)
+
+
+def with_drop(base: ModelFit, x: np.ndarray, n: np.ndarray) -> ModelFit:
+    """`base` (a fit of one of DROP_BASES on x, n) with the drop detector added: variant ``<base>_drop``.
+    Offline evaluation reuses the base's fit this way; bad data keep the base's "no valid model"."""
+    if base.variant not in DROP_BASES:
+        raise ValueError(f"the drop detector extends {DROP_BASES}, not {base.variant!r}")
+    x = np.asarray(x, float).ravel()
+    n = np.asarray(n, float).ravel()
+    drop = fit_drop(x, n) if base.ok and sample_problem(x, n) is None else None
+    return dataclasses.replace(base, variant=f"{base.variant}_drop", drop=drop)
 
 
 def last_positions(x: np.ndarray, k: int) -> np.ndarray:
