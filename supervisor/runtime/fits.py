@@ -131,7 +131,7 @@ class ProcessFits:
     run after run: `start_run(predictor)` hands it the run's fresh predictor; results of an earlier run are
     dropped. A dead fit process raises in `submit`/`take`, which the loop turns into a fault (brake)."""
 
-    def __init__(self, start_timeout: float = 60.0) -> None:
+    def __init__(self) -> None:
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_fits_main, args=(child,), name="predictor-fits", daemon=True)

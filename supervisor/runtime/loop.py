@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import enum
 import math
-import threading
 from dataclasses import dataclass, field
 from typing import Any
 
