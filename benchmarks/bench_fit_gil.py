@@ -34,18 +34,26 @@ def _samples(k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run(mode: str, seconds: float, period: float) -> dict[str, float]:
-    predictor = stage_predictor(load_config(None).stage("explore"))
-    fits = {"none": None, "thread": lambda: ThreadFits(predictor),
-            "process": lambda: ProcessFits().start_run(predictor)}[mode]
-    fits = fits() if fits is not None else None
+    stage = load_config(None).stage("explore")
+    proc = ProcessFits() if mode == "process" else None
+
+    def fresh():
+        """Fits for a new run (a fresh predictor), the same way in either mode."""
+        if mode == "thread":
+            return ThreadFits(stage_predictor(stage))
+        return proc.start_run(stage_predictor(stage))
+
+    fits = fresh() if mode != "none" else None
     stop = threading.Event()
 
-    def feed() -> None:  # one fit per 10 ms, each on the samples so far (20 steps, then again)
+    def feed() -> None:  # one fit per 10 ms, each on the samples so far (30 steps: a 45 deg arc, then a new run)
+        nonlocal fits
         k = 0
         while not stop.wait(0.01):
-            step = k % 20
-            if step == 0 and isinstance(fits, ProcessFits):
-                fits.start_run(stage_predictor(load_config(None).stage("explore")))
+            step = k % 30
+            if step == 0 and k > 0:
+                fits.close()
+                fits = fresh()
             fits.submit(k, *_samples(step), np.full((5, 2), 1e-4))
             fits.take(k - 1)
             k += 1
@@ -76,10 +84,10 @@ def run(mode: str, seconds: float, period: float) -> dict[str, float]:
     stop.set()
     if feeder is not None:
         feeder.join(1.0)
-    if isinstance(fits, ProcessFits):
-        fits.shutdown()
-    elif fits is not None:
+    if fits is not None:
         fits.close()
+    if proc is not None:
+        proc.shutdown()
     ms = np.array(late) * 1e3
     return {"ticks": len(ms), "p50_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)),
             "max_ms": float(ms.max()), "over_10ms": int((ms > 10).sum()), "sched_fifo": fifo}

@@ -3,8 +3,9 @@
 The loop asks for one fit per step (`submit`) and applies it when it is done (`take`); a fit never
 arrives late without the loop noticing (its `prediction_timeout`). On the real clock the fits run in a
 process of their own (`ProcessFits`): a free-width EMG fit takes 10-40 ms, most of it inside scipy's
-MINPACK, which holds the GIL between its Python callbacks; from a thread beside a 4 ms tick that held
-the tick up to 30 ms at a time (a state-gap fault on the sim robot). A process shares no GIL.
+MINPACK, which holds the GIL between its Python callbacks; on a thread beside a 4 ms tick the tick waits
+for it (benchmarks/bench_fit_gil.py: p99 lateness 2-2.6 ms against 0.35 ms; in a real-clock dry-run one
+72 ms tick while a fit ran). A process shares no GIL.
 """
 
 from __future__ import annotations
