@@ -224,3 +224,30 @@ def test_model_refinement_in_the_loop_after_the_warmup_steps(cfg, tmp_path, cont
     else:
         assert len(refined) == 1
     assert s["halt_reason"] == "end_of_path" and s["faults"] == []
+
+
+def test_continuous_arm_waiting_at_the_warmup_allowance_goes_on_when_late_results_arrive(cfg, tmp_path):
+    """Localization slower than the motion: the arm reaches the warm-up allowance (6 deg) with the last
+    steps' frames still in flight. A prediction from the earlier steps then puts the step horizon
+    (furthest sample + theta_b) behind the resting arm; that means "stay here", not "passed the
+    boundary" (it once halted the run there: gate:past at 6 deg on an arc whose boundary was 38 deg).
+    The later steps' results move the horizon on and the arc continues; it never runs more than a step
+    ahead of the samples once moving again."""
+    import json
+
+    stage = _stage(cfg, sampling="continuous", hard_limit=math.radians(9.0), warmup_steps=4,
+                   localization_timeout=30.0)  # slow, not lost
+    s = _run(cfg, stage, out=tmp_path, latency_scale=15.0)
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    assert not s["halt_reason"].startswith("gate:"), s
+    assert s["halt_angle_deg"] > 6.0 + 1e-6, s
+    assert s["faults"] == [] and s["max_overshoot_deg"] <= 1e-6
+    furthest, rested_behind = 0.0, 0
+    for e in events:
+        if e["kind"] == "localization":
+            furthest = max(furthest, e["theta_deg"])
+        elif e["kind"] == "prediction" and e["valid"] and e["s_deg"] >= 6.0 - 1e-9:
+            horizon = furthest + 1.5
+            assert e["theta_allowed_deg"] <= max(horizon, e["s_deg"]) + 1e-6, e
+            rested_behind += horizon < e["s_deg"] - 1e-6
+    assert rested_behind >= 1  # the situation under test did occur

@@ -11,7 +11,9 @@ Per tick:
 3. take finished localizations, and once a step's samples are complete, update
    the predictor -> `theta_p`, `theta_allowed = min(theta_p - margin, hard_limit)`;
    in continuous mode also at most one step beyond the furthest sample (the
-   next-step rule: a prediction is trusted one step ahead of its data, no further);
+   next-step rule: a prediction is trusted one step ahead of its data, no further;
+   an arm at rest beyond that, put there by the warm-up allowance, waits there for
+   the frames still being localized);
    the consistency guard compares the step's target poses, carried into the base
    frame by the robot's kinematics, with the model-time target pose: the target
    does not move, so a drift beyond the stage's limit means localization is failing
@@ -245,7 +247,12 @@ class SupervisorLoop:
                 # Moving, the paper's next-step rule becomes a horizon: the prediction made from samples
                 # up to theta_e permits travel to theta_e + theta_b, no further, until the next update.
                 # (Stop-and-go applies the rule step by step in _tick_stop_and_go.)
-                allowed = min(allowed, self._evidence + self.stage.step)
+                # An arm already at rest beyond that horizon (the warm-up allowance took it there while
+                # later steps' frames are still being localized) stays where it is until they arrive:
+                # the horizon never lies behind a resting arm, which would read as "passed the boundary".
+                ps = self.follower.state
+                at_rest = abs(ps.ds) < _REST_V and abs(ps.dds) < _REST_V
+                allowed = min(allowed, max(self._evidence + self.stage.step, s_now if at_rest else -math.inf))
             if in_warmup:
                 # Warm-up: a model from a few positions is too uncertain to stop on (a cautious
                 # variant would stop at once); the configured warm-up allowance is granted regardless.
