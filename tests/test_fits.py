@@ -47,7 +47,7 @@ def _same(a, b) -> None:
 
 
 def test_the_fit_process_predicts_what_the_inline_fits_predict(fits):
-    stage = load_config(None).stage("explore")  # free-width LCB fit with the error-aware boundary
+    stage = load_config(None).stage("explore")  # a cautious fit with the error-aware boundary
     inline = InlineFits(stage_predictor(stage))
     fits.start_run(stage_predictor(stage))
     for k, (xs, ns, err) in enumerate(_steps(0.12)):
