@@ -237,7 +237,7 @@ def test_continuous_arm_waiting_at_the_warmup_allowance_goes_on_when_late_result
 
     stage = _stage(cfg, sampling="continuous", hard_limit=math.radians(9.0), warmup_steps=4,
                    localization_timeout=30.0)  # slow, not lost
-    s = _run(cfg, stage, out=tmp_path, latency_scale=15.0)
+    s = _run(cfg, stage, out=tmp_path, latency_scale=40.0)  # 1-4 s per frame here: late on any machine
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     assert not s["halt_reason"].startswith("gate:"), s
     assert s["halt_angle_deg"] > 6.0 + 1e-6, s
