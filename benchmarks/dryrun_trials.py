@@ -4,7 +4,8 @@ Reports per trial the halt angle, the actual boundary (ground truth, 4 mm/10 deg
 overshoot of theta_allowed on the executed joint trajectory (per tick, against the allowance in
 force), the revision shortfall (how far a revised allowance fell behind the point where braking
 at once would end) and envelope usage; then the totals
-against the paper's live trials (74.7% envelope usage, static 60.4%).
+against the paper's live trials (74.7% envelope usage, static 60.4%); OUT/trials.json and
+OUT/trials.png (halt against actual boundary, per trial and mode).
 
     .venv/bin/python benchmarks/dryrun_trials.py [-o out/trials] [--stage explore] [--jobs 2]
         [--scenes phantom,box,...] [--suite v3] [--azimuths 0,90,270] [--config FILE] [--resume]
@@ -24,6 +25,8 @@ import re
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -68,6 +71,38 @@ def trial_dir(out: Path, name: str) -> Path:
     path = out / name
     if Path(name).is_absolute() or os.path.dirname(name) or out.resolve() not in path.resolve().parents:
         raise SystemExit(f"error: trial output {name!r} would be written outside {out}")
+    return path
+
+
+def plot_trials(rows: list[dict], path: Path) -> Path:
+    """Per trial, one panel per sampling mode: the actual boundary (bar) and the halt angle (dot: green
+    inside the boundary, red past it), with each mode's mean envelope usage in its title."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    modes = sorted({r["sampling"] for r in rows})
+    fig, axes = plt.subplots(len(modes), 1, figsize=(12, 4.2 * len(modes)), squeeze=False)
+    for ax, mode in zip(axes[:, 0], modes):
+        rs = [r for r in rows if r["sampling"] == mode]
+        x = np.arange(len(rs))
+        actual = np.array([r["actual_boundary_deg"]["4mm_10deg"] for r in rs])
+        halt = np.array([r["halt_angle_deg"] for r in rs])
+        inc = np.array([bool(r["incursion"]) for r in rs])
+        ax.bar(x, actual, color="0.85", label="actual boundary (4 mm / 10 deg)")
+        ax.scatter(x[~inc], halt[~inc], color="tab:green", zorder=3, s=18, label="halt")
+        if inc.any():
+            ax.scatter(x[inc], halt[inc], color="tab:red", zorder=3, s=24, label="halt past the boundary")
+        usage = [r["envelope_usage"] for r in rs if r["envelope_usage"] is not None]
+        ax.set_title(f"{mode}: {len(rs)} trials, {int(inc.sum())} incursions, mean envelope usage "
+                     f"{100 * sum(usage) / max(len(usage), 1):.1f}%")
+        ax.set_xticks(x, [f"{r['scene']} {r['azimuth_deg']:.0f}" for r in rs], rotation=75, fontsize=7)
+        ax.set_ylabel("angle [deg]")
+        ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
     return path
 
 
@@ -126,6 +161,7 @@ def main() -> int:
     print(json.dumps(summary, indent=1))
     out.mkdir(parents=True, exist_ok=True)
     (out / "trials.json").write_text(json.dumps({"summary": summary, "trials": rows}, indent=1))
+    print(f"wrote {out / 'trials.json'}, {plot_trials(rows, out / 'trials.png')}", file=sys.stderr)
     return 0
 
 
