@@ -54,6 +54,7 @@ from supervisor.errors import CameraTimeout
 from supervisor.geometry import pose_error
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.localizer import predict_target_pose
+from supervisor.motion.braking import PathState
 from supervisor.motion.gate import Gate
 from supervisor.motion.plan import MotionRejected, PathFollower
 from supervisor.runtime.events import EventLog
@@ -65,6 +66,11 @@ from supervisor.runtime.worker import FrameJob
 from supervisor.stages import StageConfig
 
 _REST_V = 1e-9  # path velocity below which the robot is at rest
+
+
+def _at_rest(ps: PathState) -> bool:
+    """The path follower's state says the robot is at rest (velocity and acceleration both ~0)."""
+    return abs(ps.ds) < _REST_V and abs(ps.dds) < _REST_V
 
 
 class Phase(enum.Enum):
@@ -250,9 +256,8 @@ class SupervisorLoop:
                 # An arm already at rest beyond that horizon (the warm-up allowance took it there while
                 # later steps' frames are still being localized) stays where it is until they arrive:
                 # the horizon never lies behind a resting arm, which would read as "passed the boundary".
-                ps = self.follower.state
-                at_rest = abs(ps.ds) < _REST_V and abs(ps.dds) < _REST_V
-                allowed = min(allowed, max(self._evidence + self.stage.step, s_now if at_rest else -math.inf))
+                rest_floor = s_now if _at_rest(self.follower.state) else -math.inf
+                allowed = min(allowed, max(self._evidence + self.stage.step, rest_floor))
             if in_warmup:
                 # Warm-up: a model from a few positions is too uncertain to stop on (a cautious
                 # variant would stop at once); the configured warm-up allowance is granted regardless.
@@ -555,7 +560,7 @@ class SupervisorLoop:
                         f"frame captured at t={oldest:.4f} not localized after {(now - oldest) * 1000:.0f} ms")
         ps = self.follower.state
         s = ps.s
-        at_rest = abs(ps.ds) < _REST_V and abs(ps.dds) < _REST_V
+        at_rest = _at_rest(ps)
 
         if self._phase is Phase.HALTED:
             return True
