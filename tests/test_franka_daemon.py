@@ -141,7 +141,19 @@ def test_a_gated_arc_on_franky_sim_halts_within_the_allowance_on_the_reported_tr
     # commanded path stops at the allowance; the arm itself may pass its last target by its tracking error
     # (franky-sim: 0.13-0.20 mrad in joint space, ~0.005 deg of arc; a CI run measured 0.0003 deg)
     assert s["max_overshoot_deg"] <= TRACKING_DEG, s
-    assert s["halt_angle_deg"] <= s["theta_allowed_deg"] + 1e-6, s
+    # Stop-and-go: every step's target lies within the allowance in force when it was commanded, and the arm
+    # halts at or before the last one. (The summary's theta_allowed_deg is the final allowance, which a
+    # prediction made at rest after the last step may put below the arm: 39.87 deg with the arm at 40.5.)
+    events = rig.events()
+    run = events[max(i for i, e in enumerate(events) if e["kind"] == "start"):]
+    allowed, targets = None, []
+    for e in run:
+        if e["kind"] == "prediction":
+            allowed = e["theta_allowed_deg"]
+        elif e["kind"] == "step":
+            assert allowed is not None and e["target_deg"] <= allowed + 1e-6, (e, allowed)
+            targets.append(e["target_deg"])
+    assert targets and s["halt_angle_deg"] <= targets[-1] + 1e-6, (s, targets[-1:])
     assert s["max_executed_angle_deg"] > 5.0, s  # the arm really went round the target
     assert rig.status()["state"] == "halted"
 
