@@ -12,6 +12,9 @@ A `stages:` mapping in the configuration YAML (degrees/ms at this edge, SI in
         margin_deg: 0.5              # theta_allowed = min(theta_p - margin, hard_limit)
         hard_limit_deg: 60
         sampling: stop_and_go        # stop_and_go | continuous
+        final_step: whole            # stop-and-go, when a whole step is refused: whole = halt where the
+                                     # arm is (the paper's rule); to_allowance = one last, shorter step up
+                                     # to theta_allowed, then halt
         frames_per_step: 5
         warmup_steps: 4              # steps allowed before a valid model must exist
         frame_timeout_ms: 200
@@ -45,6 +48,7 @@ from supervisor.yamlschema import Node, load_yaml
 
 PREDICTORS = ("long_range", "next_step", "static")
 SAMPLING = ("stop_and_go", "continuous")
+FINAL_STEPS = ("whole", "to_allowance")
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
 
 
@@ -72,6 +76,7 @@ class StageConfig:
     tolerance_t: float | None = None  # m, the translation tolerance the stage is tuned for (None: not given)
     tolerance_r: float | None = None  # rad, the rotation tolerance
     error_kappa: float | None = None  # the error-aware boundary's kappa (None: off); needs both tolerances
+    final_step: str = "whole"  # stop-and-go: "whole" steps only, or a last step "to_allowance" (see the loop)
 
     def theta_allowed(self, theta_p: float | None) -> float:
         """The one rule for the angle the gate must not pass: `min(theta_p - margin, hard_limit)`.
@@ -118,8 +123,12 @@ def parse_stage(name: str, n: Node) -> StageConfig:
         consistency_t=n.number("consistency_limit_mm", 2.0, min=0.0, max=1000.0) / 1000.0,
         consistency_r=math.radians(n.number("consistency_limit_deg", 5.0, min=0.0, max=180.0)),
         overrun_budget=n.integer("overrun_budget", 3, min=1, max=1000),
+        final_step=n.string("final_step", "whole", choices=FINAL_STEPS),
         **_error_bound(n),
     )
+    if stage.final_step != "whole" and stage.sampling != "stop_and_go":
+        raise n.error("final_step", f"{stage.final_step!r} applies to stop_and_go sampling only (continuous "
+                      "sampling always runs up to theta_allowed); remove it or use 'whole'")
     n.done()
     return stage
 

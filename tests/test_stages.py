@@ -100,6 +100,9 @@ def test_load_stages_from_file(tmp_path):
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    error_kappa: yes\n    tolerance_mm: 4\n    tolerance_deg: 10",
          "stages.fast.error_kappa", "number"),
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    kappa: 2", "stages.fast.kappa", "unknown key"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    final_step: half", "stages.fast.final_step", "to_allowance, whole"),
+        ("sampling: continuous", "sampling: continuous\n    final_step: to_allowance", "stages.slow.final_step",
+         "stop_and_go sampling only"),
     ],
 )
 def test_bad_values_name_file_and_dotted_key(old, new, key, words):

@@ -22,6 +22,11 @@ Per tick:
    at which a stop still ends at or before `theta_allowed`;
 5. the path follower advances (or brakes) and the robot gets one joint command.
 
+Stop-and-go takes whole steps of theta_b while the next-step rule and theta_allowed permit them. When
+they refuse one, the arm halts where it is (the paper's protocol) or, with the stage's `final_step:
+to_allowance`, first makes one last, shorter step up to theta_allowed (a valid prediction's boundary
+minus the margin; never after the guard tripped or without a prediction) and halts there.
+
 Fail safe: no valid prediction once the warm-up allowance is used up, a stale or
 missing frame, a localization not back within the stage's timeout, a robot-state
 gap, a robot state that is not finite, has the wrong shape, lies outside the joint
@@ -66,6 +71,7 @@ from supervisor.runtime.worker import FrameJob
 from supervisor.stages import StageConfig
 
 _REST_V = 1e-9  # path velocity below which the robot is at rest
+FINAL_STEP_MIN = math.radians(0.1)  # `final_step: to_allowance`: a shorter last step is taken if at least this long
 
 
 def _at_rest(ps: PathState) -> bool:
@@ -195,6 +201,8 @@ class SupervisorLoop:
         self.record = RunRecord()
         self._theta_allowed = self._warmup_allowance()
         self._valid_prediction = False
+        self._last_prediction_valid = False  # the newest prediction's validity
+        self._final_step = False  # stop-and-go: the last, shorter step to theta_allowed is under way
         self._allow_next = True  # the predictor's next-step rule (warm-up: allowed)
         self._limited_by = ""  # the last valid prediction's binding boundary ("error_bound" or "")
         self._step = 0
@@ -245,6 +253,7 @@ class SupervisorLoop:
         warm = self._warmup_allowance()
         in_warmup = s_now < warm - 1e-12
         valid = pred is not None and pred.valid
+        self._last_prediction_valid = valid
         if valid:
             self._valid_prediction = True
             allowed = self.stage.theta_allowed(pred.boundary)
@@ -599,9 +608,20 @@ class SupervisorLoop:
         self.record.trajectory_q.append(np.array(executed.q, float))
         return False
 
+    def _may_step_to_allowance(self, s: float) -> bool:
+        """Whether the refused whole step may become one last step up to theta_allowed: the stage asks for
+        it, the last prediction was valid (the allowance is a predicted boundary minus the margin, not a
+        stop point), the consistency guard has not tripped, and the allowance lies at least
+        FINAL_STEP_MIN ahead of the arm."""
+        return (self.stage.final_step == "to_allowance" and self._last_prediction_valid
+                and self._guard_stop is None and self._theta_allowed - s >= FINAL_STEP_MIN)
+
     def _tick_stop_and_go(self, now: float, s: float, at_rest: bool) -> None:
         st = self.stage
         if self._phase is Phase.MOVING and at_rest and abs(s - self._target_s) < 1e-9:
+            if self._final_step:
+                self._halt(now, self._boundary_halt_reason())  # the last, shorter step is done
+                return
             self._phase = Phase.CAPTURING
             self._frames_in_step = 0
             self._next_frame_t = now
@@ -621,8 +641,18 @@ class SupervisorLoop:
             if nxt - s < 1e-9:
                 self._halt(now, "end_of_path")
             elif not self._allow_next or nxt > self._theta_allowed + 1e-12:
-                # next step not permitted: stay stopped (latched)
-                self._halt(now, self._boundary_halt_reason())
+                if self._may_step_to_allowance(s):
+                    # `final_step: to_allowance`: a whole step would pass theta_allowed, so one last,
+                    # shorter step up to it, then halt there (no frames: nothing more may follow it)
+                    self._final_step = True
+                    self._step += 1
+                    self._target_s = self._theta_allowed
+                    self._phase = Phase.MOVING
+                    self.events.emit(now, "step", step=self._step, target_deg=math.degrees(self._target_s),
+                                     final=True)
+                else:
+                    # next step not permitted: stay stopped (latched)
+                    self._halt(now, self._boundary_halt_reason())
             else:
                 self._step += 1
                 self._target_s = nxt
