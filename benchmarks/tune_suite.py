@@ -8,7 +8,7 @@ all scenes (in-sample).
 
     .venv/bin/python benchmarks/tune_suite.py BENCH_DIR --cache OUT/cache [-o OUT/loso.json] [--jobs 2]
         [--hard-limit-deg 45] [--plain] [--replayed FILE] [--suite v2] [--tolerances T,..]
-        [--error-aware both|on|off] [--families F,..]
+        [--error-aware both|on|off] [--families F,..] [--final-step-margin-deg M]
 
 `--plain` chooses without the robust slack (the plain best zero-incursion point per fold);
 `--replayed FILE` keeps the replayed suite (a pickle) so that later runs skip the fits.
@@ -60,6 +60,8 @@ def main() -> int:
                     help="only the arcs of this suite's scenes (v3 keeps every v2 arc: --suite v2 on a v3 bench)")
     ap.add_argument("--tolerances", default=",".join(TOLERANCES))
     ap.add_argument("--error-aware", choices=("both", "on", "off"), default="both")
+    ap.add_argument("--final-step-margin-deg", type=float, default=None,
+                    help="replay stop-and-go's last step to the allowance with this margin (final_step: to_allowance)")
     a = ap.parse_args()
     cfg = load_config(a.config)
     rp = Path(a.replayed) if a.replayed else None
@@ -79,7 +81,9 @@ def main() -> int:
         for name in a.families.split(","):
             variants = FAMILIES[name]
             for err in {"both": (False, True), "on": (True,), "off": (False,)}[a.error_aware]:
-                r = cross_validate(arcs, "next_step", variants, tol, hard, error_aware=err, robust=not a.plain)
+                r = cross_validate(arcs, "next_step", variants, tol, hard, error_aware=err, robust=not a.plain,
+                                   final_margin=None if a.final_step_margin_deg is None
+                                   else math.radians(a.final_step_margin_deg))
                 r.pop("_final")
                 label = f"next_step {name}" + (" + error bound" if err else "")
                 cv, cs = r["cross_validated"], r["cross_validated_static"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -86,3 +87,25 @@ def _written(tmp_path, text: str):
     p = tmp_path / "plain.yaml"
     p.write_text(text)
     return p
+
+
+def test_a_stage_with_a_last_step_to_the_allowance_is_tuned_with_it():
+    # the next-step rule refuses at the stop x_k with theta_p 1 deg beyond it; with a 0.25 deg margin the last
+    # step ends 0.75 deg further. Scenes a, b are safe from n_t 24 with whole steps but from 26 with the last
+    # step, so the stage that runs it must be tuned with it: n_t 24 would carry a 0.75 deg past its boundary.
+    arcs = [replace(r, refused_theta_p={"next_step_logfit_lcb": [s + 1.0 * D for s in r.stops["next_step_logfit_lcb"]]},
+                    step=2.25 * D) for r in (_arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.5))]
+    a = arcs[0]
+    i24 = N_T.index(24)
+    assert a.final_step_stops("next_step_logfit_lcb", 0.25 * D)[i24] == pytest.approx(20.75 * D)
+    assert a.final_step_stops("next_step_logfit_lcb", 2.0 * D)[i24] == pytest.approx(20.0 * D)  # never backwards
+    assert a.final_step_stops("next_step_logfit_lcb", -5.0 * D)[i24] == pytest.approx(22.25 * D)  # at most a step
+    whole = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    last = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
+                          final_margin=0.25 * D)
+    assert whole["_final"].n_t == 24 and last["_final"].n_t == 26
+    assert whole["in_sample"]["incursions"] == 0 and last["in_sample"]["incursions"] == 0
+    assert last["final_step_margin_deg"] == pytest.approx(0.25) and whole["final_step_margin_deg"] is None
+    # an arc that stopped for another reason (no valid model: nan) takes no last step
+    a.refused_theta_p["next_step_logfit_lcb"][i24] = math.nan
+    assert a.final_step_stops("next_step_logfit_lcb", 0.25 * D)[i24] == pytest.approx(20.0 * D)

@@ -95,6 +95,16 @@ class DatasetResult:
     drift: list[tuple[float, float]] = field(default_factory=list)  # per position: mean guard drift (m, rad)
     # paper 2's metric per position: mean iou8 over the localized frames (nan where none localized)
     iou8_mean: list[float] = field(default_factory=list)
+    # next-step systems, per n_t: theta_p (SI) at the position where the next-step rule refused the step
+    # (nan where the arc stopped otherwise: no valid model, or the end), for the last step to the allowance
+    refused_theta_p: dict[str, list[float]] = field(default_factory=dict)
+    step: float = math.nan  # the recording's sampling step (SI)
+
+    def final_step_stops(self, system: str, margin: float) -> list[float]:
+        """`system`'s stop per n_t with stop-and-go's `final_step: to_allowance`: where the next-step rule
+        refused a whole step at x_k, one last step to max(x_k, min(x_k + step, theta_p - margin))."""
+        return [x if not math.isfinite(b) else max(x, min(x + self.step, b - margin))
+                for x, b in zip(self.stops[system], self.refused_theta_p[system])]
 
     def error_stop(self, tol: str, kappa: float) -> float:
         """Where the error-aware boundary alone stops at `kappa` (x_max if it never does)."""
@@ -156,6 +166,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     actual = {k: actual_boundary(x, te, re, tt, tr) for k, (tt, tr) in TOLERANCES.items()}
     k_lr = min(K_POSITIONS[kind], len(x))
     stops: dict[str, list[float]] = {}
+    refused: dict[str, list[float]] = {}  # next-step systems: theta_p where the rule refused the step (nan: other stop)
     guard_stop: dict[str, float] = {}
     for tol, (tt, tr) in TOLERANCES.items():
         with np.errstate(invalid="ignore"):
@@ -185,9 +196,9 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         stops[f"long_range{suffix}"] = [axis.to_si(mf.boundary(nt, x_now, xmax_f)) if mf.ok else float(x[k_lr - 1])
                                         for nt in N_T]
         step = float(np.median(np.diff(xf)))
-        out = []
+        out, refused_at = [], []
         for nt in N_T:
-            stop = x_max
+            stop, theta_p = x_max, math.nan
             for k in range(len(x)):
                 f = fits[k]
                 if f is None:
@@ -195,11 +206,14 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
                 if not f.ok:
                     stop = float(x[k])  # no valid model -> no further motion
                     break
-                if f.boundary(nt, float(xf[k]), xmax_f) <= float(xf[k]) + step - 1e-12:
-                    stop = float(x[k])
+                b = f.boundary(nt, float(xf[k]), xmax_f)
+                if b <= float(xf[k]) + step - 1e-12:
+                    stop, theta_p = float(x[k]), float(axis.to_si(b))
                     break
             out.append(stop)
+            refused_at.append(theta_p)
         stops[f"next_step{suffix}"] = out
+        refused[f"next_step{suffix}"] = refused_at
     # MLP, long-range style (the paper's Table I).
     mlp = MLPPredictor(15, float(np.median(np.diff(x))), axis, x_max)
     xs_si = np.concatenate(xsamp[:k_lr])
@@ -224,7 +238,8 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
             ms.append(log_margin(trends, float(x[k]) + step_si, 1.0))
         err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
-                         scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean)
+                         scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean, refused,
+                         float(np.median(np.diff(x))))
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:

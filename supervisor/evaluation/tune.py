@@ -12,7 +12,8 @@ is chosen for one tolerance on a benchmark suite's arcs, and its generalisation 
   envelope cross-validated the same way, for comparison);
 - finally choose on all scenes and write the tuned stage as YAML (mm/deg, like the config).
 
-Offline replay runs at the recording's step (2.25 deg), the live stage at its own `step_deg`.
+Offline replay runs at the recording's step (2.25 deg), the live stage at its own `step_deg`. A stop-and-go
+stage with `final_step: to_allowance` is replayed with its last step to the allowance (the stage's margin).
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ class Grid:
     """Every candidate operating point and its stop on every arc (rows: points, columns: arcs)."""
 
     def __init__(self, arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tol: str,
-                 hard_limit: float, error_aware: bool) -> None:
+                 hard_limit: float, error_aware: bool, final_margin: float | None = None) -> None:
         self.arcs = arcs
         self.actual = np.array([r.actual[tol] for r in arcs])
         self.x_end = np.array([min(r.x_max, hard_limit) for r in arcs])
@@ -68,7 +69,10 @@ class Grid:
         err = {k: np.array([r.error_stop(tol, k) if k is not None else math.inf for r in arcs]) for k in kappas}
         for v in variants:
             system = predictor if v == "paper" else f"{predictor}_{v}"
-            base = np.array([r.stops[system] for r in arcs]).T  # (n_t, arcs)
+            # (n_t, arcs); with the last step to the allowance (final_margin) where the next-step rule refused
+            # a step. The guard and the error bound still stop at their position: no last step after them.
+            base = np.array([r.stops[system] if final_margin is None or predictor != "next_step"
+                             else r.final_step_stops(system, final_margin) for r in arcs]).T
             for i in range(len(N_T) - 1, -1, -1):  # high n_t (conservative) first
                 for g in GUARD_FRACTIONS:
                     for k in kappas:
@@ -135,7 +139,9 @@ def tune(cfg: Config, bench_dir: str | Path, stage: str, tolerance: str, out: st
     out = Path(out)
     results = evaluate_suite(cfg, bench_dir, Path(cache) if cache else out / "cache", jobs, progress)
     arcs = [r for r in results if r.kind == "arc"]
-    report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress)
+    final_margin = st.margin if st.final_step == "to_allowance" and st.sampling == "stop_and_go" else None
+    report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress,
+                            final_margin=final_margin)
     report["stage"] = stage
     final = report.pop("_final")
     out.mkdir(parents=True, exist_ok=True)
@@ -149,16 +155,18 @@ def tune(cfg: Config, bench_dir: str | Path, stage: str, tolerance: str, out: st
 
 def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tolerance: str,
                    hard_limit: float, error_aware: bool = False, progress=lambda m: None,
-                   robust: bool = True) -> dict[str, Any]:
+                   robust: bool = True, final_margin: float | None = None) -> dict[str, Any]:
     """Leave-one-scene-out over `arcs` (evaluated datasets): per fold the choice and its held-out stops,
     the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs.
 
     `robust` (default): each choice also picks its safety slack by an inner leave-one-scene-out on
-    its own training scenes (`Grid.choose_robust`); otherwise the plain best zero-incursion point."""
+    its own training scenes (`Grid.choose_robust`); otherwise the plain best zero-incursion point.
+    `final_margin` (rad): replay stop-and-go's last step to the allowance with this margin (the stage's
+    `final_step: to_allowance`); None: the paper's whole steps."""
     scenes = sorted({r.scene or r.name for r in arcs})
     if len(scenes) < 2:
         raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
-    grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware)
+    grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware, final_margin)
     scene_of = np.array([r.scene or r.name for r in arcs])
     deg = math.degrees(1.0)
     folds, held_stops, static_stops = [], np.full(len(arcs), np.nan), np.full(len(arcs), np.nan)
@@ -189,6 +197,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     final, final_slack = grid.choose_robust(every, scene_of) if robust else (grid.choose(every), 0.0)
     return {
         "tolerance": tolerance, "predictor": predictor, "variants": list(variants), "error_aware": error_aware,
+        "final_step_margin_deg": None if final_margin is None else final_margin * deg,
         "arcs": len(arcs), "scenes": scenes, "folds": folds,
         "cross_validated": cv, "cross_validated_static": cv_static,
         "cv_improvement_over_static": (cv["mean_spl_deg"] / cv_static["mean_spl_deg"] - 1.0)
@@ -226,7 +235,9 @@ def format_report(r: dict[str, Any]) -> str:
     cv, cs = r["cross_validated"], r["cross_validated_static"]
     imp = r["cv_improvement_over_static"]
     lines = [f"stage {r['stage']}, tolerance {r['tolerance']}, {r['arcs']} arcs over {len(r['scenes'])} scenes "
-             f"(leave one scene out)",
+             f"(leave one scene out"
+             + ("" if r.get("final_step_margin_deg") is None
+                else f"; last step to the allowance, margin {r['final_step_margin_deg']:g} deg") + ")",
              f"  cross-validated: incursion rate {cv['incursion_rate']:.3f} ({cv['incursions']} arcs), "
              f"mean SPL {cv['mean_spl_deg']:.2f} deg",
              f"  static, cross-validated: incursion rate {cs['incursion_rate']:.3f} ({cs['incursions']} arcs), "
