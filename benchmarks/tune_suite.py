@@ -40,6 +40,7 @@ FAMILIES = {
     "logfit_lcb_drop": ("logfit_lcb_drop",),
     "choose:logfit_lcb+fw_lcb+local_lcb": ("logfit_lcb", "fw_lcb", "local_lcb"),
     "choose:lcb+logfit_lcb+fw_lcb+local_lcb": ("lcb", "logfit_lcb", "fw_lcb", "local_lcb"),
+    "choose:lcb+logfit_lcb+fw_lcb": ("lcb", "logfit_lcb", "fw_lcb"),  # the continuous stages' whole-history fits
     "choose:lcb_drop+logfit_lcb_drop+fw_lcb_drop": ("lcb_drop", "logfit_lcb_drop", "fw_lcb_drop"),
     "choose:all_lcb": ("lcb", "logfit_lcb", "fw_lcb", "local_lcb", "lcb_drop", "logfit_lcb_drop", "fw_lcb_drop"),
 }
@@ -61,7 +62,7 @@ def main() -> int:
     ap.add_argument("--tolerances", default=",".join(TOLERANCES))
     ap.add_argument("--error-aware", choices=("both", "on", "off"), default="both")
     ap.add_argument("--final-step-margin-deg", type=float, default=None,
-                    help="replay stop-and-go's last step to the allowance with this margin (final_step: to_allowance)")
+                    help="replay runs that go up to the allowance theta_p - margin (final_step: to_allowance, continuous)")
     a = ap.parse_args()
     cfg = load_config(a.config)
     rp = Path(a.replayed) if a.replayed else None

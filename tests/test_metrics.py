@@ -71,21 +71,22 @@ def test_evaluation_guard_stops_next_step_where_the_drift_crosses_half_the_toler
     assert off.guard_stop == {"2mm_3deg": math.inf, "4mm_10deg": math.inf}
 
 
-def test_the_replay_keeps_theta_p_where_the_next_step_rule_refused_for_the_last_step():
+def test_the_replay_keeps_theta_p_after_each_position_for_runs_up_to_the_allowance():
     from supervisor.evaluation.experiments import N_T, evaluate_dataset
 
     r = evaluate_dataset("smooth", "arc", _artifacts({}))
-    assert r.step == pytest.approx(math.radians(2.25))
+    assert r.step == pytest.approx(math.radians(2.25)) and r.fit_from == 3
     k = N_T.index(30)  # n_i reaches 30 near 31 deg: refused inside the arc
-    stop, theta_p = r.stops["next_step_logfit"][k], r.refused_theta_p["next_step_logfit"][k]
-    assert stop < math.radians(40.0)
-    assert stop < theta_p <= stop + r.step + 1e-12  # the rule refused: the boundary lies within the next step
-    last = r.final_step_stops("next_step_logfit", math.radians(0.5))[k]
-    assert last == pytest.approx(max(stop, theta_p - math.radians(0.5)))
-    # a threshold n_i never reaches: the arc runs to its end, and the last step adds nothing beyond it
+    stop, path = r.stops["next_step_logfit"][k], r.theta_p_path["next_step_logfit"][k]
+    assert r.positions[r.fit_from + len(path) - 1] == pytest.approx(stop)  # kept up to the stop
+    assert stop < path[-1] <= stop + r.step + 1e-12  # the rule refused: the boundary lies within the next step
+    assert all(b > r.positions[r.fit_from + j] + r.step for j, b in enumerate(path[:-1]))  # the steps it allowed
+    up_to = r.to_allowance_stops("next_step_logfit", math.radians(0.5))[k]
+    assert stop - r.step < up_to <= path[-1] - math.radians(0.5) + 1e-12
+    # a threshold n_i never reaches: the arc runs to its end either way
     k4 = N_T.index(4)
     assert r.stops["next_step_logfit"][k4] == pytest.approx(math.radians(45.0))
-    assert r.final_step_stops("next_step_logfit", 0.0)[k4] == pytest.approx(math.radians(45.0))
+    assert r.to_allowance_stops("next_step_logfit", math.radians(1.5))[k4] == pytest.approx(math.radians(45.0))
 
 
 def test_ceiling_is_the_mean_over_the_earliest_actual_boundary_and_bounds_every_system():

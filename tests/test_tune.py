@@ -89,23 +89,37 @@ def _written(tmp_path, text: str):
     return p
 
 
-def test_a_stage_with_a_last_step_to_the_allowance_is_tuned_with_it():
-    # the next-step rule refuses at the stop x_k with theta_p 1 deg beyond it; with a 0.25 deg margin the last
-    # step ends 0.75 deg further. Scenes a, b are safe from n_t 24 with whole steps but from 26 with the last
-    # step, so the stage that runs it must be tuned with it: n_t 24 would carry a 0.75 deg past its boundary.
-    arcs = [replace(r, refused_theta_p={"next_step_logfit_lcb": [s + 1.0 * D for s in r.stops["next_step_logfit_lcb"]]},
-                    step=2.25 * D) for r in (_arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.5))]
-    a = arcs[0]
-    i24 = N_T.index(24)
-    assert a.final_step_stops("next_step_logfit_lcb", 0.25 * D)[i24] == pytest.approx(20.75 * D)
-    assert a.final_step_stops("next_step_logfit_lcb", 2.0 * D)[i24] == pytest.approx(20.0 * D)  # never backwards
-    assert a.final_step_stops("next_step_logfit_lcb", -5.0 * D)[i24] == pytest.approx(22.25 * D)  # at most a step
-    whole = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
-    last = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
-                          final_margin=0.25 * D)
-    assert whole["_final"].n_t == 24 and last["_final"].n_t == 26
-    assert whole["in_sample"]["incursions"] == 0 and last["in_sample"]["incursions"] == 0
-    assert last["final_step_margin_deg"] == pytest.approx(0.25) and whole["final_step_margin_deg"] is None
-    # an arc that stopped for another reason (no valid model: nan) takes no last step
-    a.refused_theta_p["next_step_logfit_lcb"][i24] = math.nan
-    assert a.final_step_stops("next_step_logfit_lcb", 0.25 * D)[i24] == pytest.approx(20.0 * D)
+def _stepped_arc(scene: str, actual_deg: float) -> DatasetResult:
+    """An arc replayed at 2.25 deg positions: with n_t the whole-step rule stops at position K = 20 - (n_t - 4)
+    (at least 3); after each earlier position theta_p lies 4 deg ahead, at the stop only 1.5 deg."""
+    stops, paths = [], []
+    for nt in N_T:
+        k = max(3, 20 - (nt - 4))
+        stops.append(POS[k])
+        paths.append([POS[j] + (1.5 if j == k else 4.0) * D for j in range(3, k + 1)])
+    base = _arc(scene, 0, actual_deg, 0.5)
+    return replace(base, stops={"next_step_logfit_lcb": stops}, theta_p_path={"next_step_logfit_lcb": paths},
+                   fit_from=3, step=2.25 * D)
+
+
+def test_a_stage_that_runs_up_to_the_allowance_is_tuned_so():
+    a, b = _stepped_arc("a", 20.5), _stepped_arc("b", 30.5)
+    i15 = N_T.index(15)  # whole steps stop at position 9, 20.25 deg
+    assert a.stops["next_step_logfit_lcb"][i15] == pytest.approx(20.25 * D)
+    # up to the allowance with a 1 deg margin: theta_p - 1 = x + 3 reaches each next position; at the stop
+    # theta_p - 1 = x + 0.5 does not, and the arc ends there, 0.5 deg past the whole-step stop
+    assert a.to_allowance_stops("next_step_logfit_lcb", 1.0 * D)[i15] == pytest.approx(20.75 * D)
+    # a 2 deg margin: x + 2 never reaches the next position (2.25 deg on): the arc ends 2 deg past the first fit
+    assert a.to_allowance_stops("next_step_logfit_lcb", 2.0 * D)[i15] == pytest.approx(POS[3] + 2.0 * D)
+    # a model that is not valid there stops the arc at that position, as in the whole-step replay
+    bad = replace(a, theta_p_path={"next_step_logfit_lcb": [[POS[3] + 4 * D, math.nan]] * len(N_T)},
+                  stops={"next_step_logfit_lcb": [POS[4]] * len(N_T)})
+    assert bad.to_allowance_stops("next_step_logfit_lcb", 1.0 * D)[i15] == pytest.approx(POS[4])
+    # tuned with whole steps, n_t 15 is the lowest safe point on a (20.25 <= 20.5); run up to the allowance
+    # it would end at 20.75, past a's boundary, so the stage that runs so is tuned to n_t 16 (18.5 deg)
+    whole = cross_validate([a, b], "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    up_to = cross_validate([a, b], "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
+                           final_margin=1.0 * D)
+    assert whole["_final"].n_t == 15 and up_to["_final"].n_t == 16
+    assert whole["in_sample"]["incursions"] == 0 and up_to["in_sample"]["incursions"] == 0
+    assert up_to["final_step_margin_deg"] == pytest.approx(1.0) and whole["final_step_margin_deg"] is None

@@ -95,16 +95,34 @@ class DatasetResult:
     drift: list[tuple[float, float]] = field(default_factory=list)  # per position: mean guard drift (m, rad)
     # paper 2's metric per position: mean iou8 over the localized frames (nan where none localized)
     iou8_mean: list[float] = field(default_factory=list)
-    # next-step systems, per n_t: theta_p (SI) at the position where the next-step rule refused the step
-    # (nan where the arc stopped otherwise: no valid model, or the end), for the last step to the allowance
-    refused_theta_p: dict[str, list[float]] = field(default_factory=dict)
+    # next-step systems, per n_t: theta_p (SI) after each position from `fit_from` up to where the arc
+    # stopped (nan: no valid model there), for replaying a run that goes up to the allowance
+    theta_p_path: dict[str, list[list[float]]] = field(default_factory=dict)
+    fit_from: int = 0  # index of the first position with a fit (the warm-up before it)
     step: float = math.nan  # the recording's sampling step (SI)
 
-    def final_step_stops(self, system: str, margin: float) -> list[float]:
-        """`system`'s stop per n_t with stop-and-go's `final_step: to_allowance`: where the next-step rule
-        refused a whole step at x_k, one last step to max(x_k, min(x_k + step, theta_p - margin))."""
-        return [x if not math.isfinite(b) else max(x, min(x + self.step, b - margin))
-                for x, b in zip(self.stops[system], self.refused_theta_p[system])]
+    def to_allowance_stops(self, system: str, margin: float) -> list[float]:
+        """`system`'s stop per n_t when the arm runs up to the allowance theta_p - margin (stop-and-go's
+        `final_step: to_allowance`, and continuous sampling) instead of in whole steps.
+
+        Replayed with what is known at the recorded positions: after x_k, the next position x_k + step
+        is reached only if theta_p_k - margin reaches it; otherwise the arc ends at max(x_k, theta_p_k
+        - margin). A boundary at the range's end (no failure predicted inside it) allows the end itself.
+        At or before the whole-step rule's own stop, since step + margin >= step."""
+        out = []
+        for stop, path in zip(self.stops[system], self.theta_p_path[system]):
+            end = stop
+            for j, b in enumerate(path):
+                x = self.positions[self.fit_from + j]
+                if not math.isfinite(b):
+                    break  # no valid model: no further motion (the replay's stop is this position)
+                if b >= self.x_max - 1e-12:
+                    continue  # n_i does not reach n_t inside the range: nothing to keep a margin from
+                if b - margin < x + self.step - 1e-12:
+                    end = max(x, b - margin)
+                    break
+            out.append(end)
+        return out
 
     def error_stop(self, tol: str, kappa: float) -> float:
         """Where the error-aware boundary alone stops at `kappa` (x_max if it never does)."""
@@ -166,7 +184,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     actual = {k: actual_boundary(x, te, re, tt, tr) for k, (tt, tr) in TOLERANCES.items()}
     k_lr = min(K_POSITIONS[kind], len(x))
     stops: dict[str, list[float]] = {}
-    refused: dict[str, list[float]] = {}  # next-step systems: theta_p where the rule refused the step (nan: other stop)
+    theta_p_path: dict[str, list[list[float]]] = {}  # next-step systems: theta_p per position up to the stop
     guard_stop: dict[str, float] = {}
     for tol, (tt, tr) in TOLERANCES.items():
         with np.errstate(invalid="ignore"):
@@ -196,24 +214,26 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         stops[f"long_range{suffix}"] = [axis.to_si(mf.boundary(nt, x_now, xmax_f)) if mf.ok else float(x[k_lr - 1])
                                         for nt in N_T]
         step = float(np.median(np.diff(xf)))
-        out, refused_at = [], []
+        out, paths = [], []
         for nt in N_T:
-            stop, theta_p = x_max, math.nan
+            stop, path = x_max, []
             for k in range(len(x)):
                 f = fits[k]
                 if f is None:
                     continue  # warm-up
                 if not f.ok:
                     stop = float(x[k])  # no valid model -> no further motion
+                    path.append(math.nan)
                     break
                 b = f.boundary(nt, float(xf[k]), xmax_f)
+                path.append(float(axis.to_si(b)))
                 if b <= float(xf[k]) + step - 1e-12:
-                    stop, theta_p = float(x[k]), float(axis.to_si(b))
+                    stop = float(x[k])
                     break
             out.append(stop)
-            refused_at.append(theta_p)
+            paths.append(path)
         stops[f"next_step{suffix}"] = out
-        refused[f"next_step{suffix}"] = refused_at
+        theta_p_path[f"next_step{suffix}"] = paths
     # MLP, long-range style (the paper's Table I).
     mlp = MLPPredictor(15, float(np.median(np.diff(x))), axis, x_max)
     xs_si = np.concatenate(xsamp[:k_lr])
@@ -238,8 +258,8 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
             ms.append(log_margin(trends, float(x[k]) + step_si, 1.0))
         err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
-                         scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean, refused,
-                         float(np.median(np.diff(x))))
+                         scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean, theta_p_path,
+                         k_lr - 1, float(np.median(np.diff(x))))
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:

@@ -12,8 +12,10 @@ is chosen for one tolerance on a benchmark suite's arcs, and its generalisation 
   envelope cross-validated the same way, for comparison);
 - finally choose on all scenes and write the tuned stage as YAML (mm/deg, like the config).
 
-Offline replay runs at the recording's step (2.25 deg), the live stage at its own `step_deg`. A stop-and-go
-stage with `final_step: to_allowance` is replayed with its last step to the allowance (the stage's margin).
+Offline replay runs at the recording's step (2.25 deg), the live stage at its own `step_deg`. A stage that
+runs up to the allowance theta_p - margin (stop-and-go with `final_step: to_allowance`, and continuous
+sampling) is replayed so, with its margin: the next recorded position is reached only if the allowance
+reaches it (DatasetResult.to_allowance_stops).
 """
 
 from __future__ import annotations
@@ -69,10 +71,11 @@ class Grid:
         err = {k: np.array([r.error_stop(tol, k) if k is not None else math.inf for r in arcs]) for k in kappas}
         for v in variants:
             system = predictor if v == "paper" else f"{predictor}_{v}"
-            # (n_t, arcs); with the last step to the allowance (final_margin) where the next-step rule refused
-            # a step. The guard and the error bound still stop at their position: no last step after them.
+            # (n_t, arcs); with final_margin, the run goes up to the allowance theta_p - margin instead of in
+            # whole steps (DatasetResult.to_allowance_stops). The guard and the error bound still stop at
+            # their position.
             base = np.array([r.stops[system] if final_margin is None or predictor != "next_step"
-                             else r.final_step_stops(system, final_margin) for r in arcs]).T
+                             else r.to_allowance_stops(system, final_margin) for r in arcs]).T
             for i in range(len(N_T) - 1, -1, -1):  # high n_t (conservative) first
                 for g in GUARD_FRACTIONS:
                     for k in kappas:
@@ -139,7 +142,8 @@ def tune(cfg: Config, bench_dir: str | Path, stage: str, tolerance: str, out: st
     out = Path(out)
     results = evaluate_suite(cfg, bench_dir, Path(cache) if cache else out / "cache", jobs, progress)
     arcs = [r for r in results if r.kind == "arc"]
-    final_margin = st.margin if st.final_step == "to_allowance" and st.sampling == "stop_and_go" else None
+    # a run that goes up to the allowance (stop-and-go's last step, or continuous sampling) is replayed so
+    final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
     report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress,
                             final_margin=final_margin)
     report["stage"] = stage
@@ -161,8 +165,8 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
 
     `robust` (default): each choice also picks its safety slack by an inner leave-one-scene-out on
     its own training scenes (`Grid.choose_robust`); otherwise the plain best zero-incursion point.
-    `final_margin` (rad): replay stop-and-go's last step to the allowance with this margin (the stage's
-    `final_step: to_allowance`); None: the paper's whole steps."""
+    `final_margin` (rad): replay a run that goes up to the allowance theta_p - margin (stop-and-go's
+    `final_step: to_allowance`, continuous sampling); None: the paper's whole steps."""
     scenes = sorted({r.scene or r.name for r in arcs})
     if len(scenes) < 2:
         raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
@@ -237,7 +241,7 @@ def format_report(r: dict[str, Any]) -> str:
     lines = [f"stage {r['stage']}, tolerance {r['tolerance']}, {r['arcs']} arcs over {len(r['scenes'])} scenes "
              f"(leave one scene out"
              + ("" if r.get("final_step_margin_deg") is None
-                else f"; last step to the allowance, margin {r['final_step_margin_deg']:g} deg") + ")",
+                else f"; up to the allowance, margin {r['final_step_margin_deg']:g} deg") + ")",
              f"  cross-validated: incursion rate {cv['incursion_rate']:.3f} ({cv['incursions']} arcs), "
              f"mean SPL {cv['mean_spl_deg']:.2f} deg",
              f"  static, cross-validated: incursion rate {cs['incursion_rate']:.3f} ({cs['incursions']} arcs), "
