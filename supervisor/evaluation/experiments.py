@@ -259,7 +259,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
                          scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean, theta_p_path,
-                         k_lr - 1, float(np.median(np.diff(x))))
+                         k_lr - 1, step_si)
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:

@@ -645,19 +645,19 @@ class SupervisorLoop:
                     # `final_step: to_allowance`: a whole step would pass theta_allowed, so one last,
                     # shorter step up to it, then halt there (no frames: nothing more may follow it)
                     self._final_step = True
-                    self._step += 1
-                    self._target_s = self._theta_allowed
-                    self._phase = Phase.MOVING
-                    self.events.emit(now, "step", step=self._step, target_deg=math.degrees(self._target_s),
-                                     final=True)
+                    self._start_step(now, self._theta_allowed, final=True)
                 else:
                     # next step not permitted: stay stopped (latched)
                     self._halt(now, self._boundary_halt_reason())
             else:
-                self._step += 1
-                self._target_s = nxt
-                self._phase = Phase.MOVING
-                self.events.emit(now, "step", step=self._step, target_deg=math.degrees(nxt))
+                self._start_step(now, nxt)
+
+    def _start_step(self, now: float, target: float, **extra) -> None:
+        """Stop-and-go: move to `target` (the next step's end, or the last step's allowance)."""
+        self._step += 1
+        self._target_s = target
+        self._phase = Phase.MOVING
+        self.events.emit(now, "step", step=self._step, target_deg=math.degrees(target), **extra)
 
     def _tick_continuous(self, now: float, s: float, at_rest: bool) -> None:
         """Predict while moving: frames at the camera rate, a predictor update per theta_b of progress.
