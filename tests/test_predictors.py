@@ -130,3 +130,40 @@ def test_drop_detector_needs_two_positions_and_extends_only_its_bases():
     assert quiet.rate == pytest.approx(noisy.rate, rel=0.05)
     point = 2.25 + (math.log1p(15) - quiet.level) / quiet.rate
     assert 2.25 < noisy.boundary(15, 2.25, 45.0, 1.645) < quiet.boundary(15, 2.25, 45.0, 1.645) < point
+
+
+def test_local_rate_over_an_angle_reads_continuous_frames_like_the_recorded_positions():
+    # An exponential decay (e-fold 4 deg, n = 15 at 13.1 deg) sampled as a moving camera does: one frame
+    # every 0.2 deg with 12% noise. Four "positions" are then four frames 0.6 deg apart, whose rate is
+    # erratic from one noise draw to the next (it predicts the boundary early or past it); over the
+    # recording's span (LOCAL_SPAN) the same frames give what the recorded positions give.
+    from supervisor.prediction.models import LOCAL_SPAN
+    truth = 4.0 * math.log(400 / 15)
+    x = np.arange(0.0, 9.0 + 1e-9, 0.2)
+    frames, angle = [], []
+    for seed in range(6):
+        n = 400 * np.exp(-x / 4) * np.exp(0.12 * np.random.default_rng(seed).standard_normal(len(x)))
+        frames.append(fit_variant("local_lcb", x, n).boundary(15, 9.0, 45.0))
+        mf = fit_variant("local_lcb", x, n, local_span=LOCAL_SPAN)
+        assert mf.fit.reason == f"ok: local rate over the last {LOCAL_SPAN:g} (fit units)"
+        angle.append(mf.boundary(15, 9.0, 45.0))
+    assert np.ptp(frames) > 2.0 and max(frames) > truth + 0.5
+    assert np.ptp(angle) < 1.0 and truth - 1.5 < np.mean(angle) < truth
+    xr = np.repeat([2.25, 4.5, 6.75, 9.0], 3)
+    nr = 400 * np.exp(-xr / 4) * np.exp(0.12 * np.random.default_rng(9).standard_normal(len(xr)))
+    assert np.mean(angle) == pytest.approx(fit_variant("local_lcb", xr, nr).boundary(15, 9.0, 45.0), abs=1.0)
+    with pytest.raises(ValueError, match="local_span"):
+        fit_variant("local_lcb", x, n, local_span=0.0)
+
+
+def test_continuous_stages_build_their_local_rate_over_the_recordings_span():
+    from supervisor.config import load_config
+    from supervisor.prediction.models import LOCAL_SPAN
+    from supervisor.runtime.builder import stage_predictor
+    cfg = load_config(None)
+    for name in cfg.stages:
+        st = cfg.stage(name)
+        p = stage_predictor(st)
+        base = getattr(p, "base", p)
+        if hasattr(base, "local_span"):
+            assert base.local_span == (pytest.approx(LOCAL_SPAN) if st.sampling == "continuous" else None), name

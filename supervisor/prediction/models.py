@@ -38,7 +38,9 @@ fit. Variants (selectable by name per stage):
   refitted on a sliding window), read like the tail fallback. A log-concave decay (a plateau,
   then a cliff whose e-fold length keeps shrinking) is predicted late by any one curve fitted to
   the whole history; the recent slope is the steepest seen so far, and the next-step rule only
-  needs it one step ahead.
+  needs it one step ahead. With continuous sampling every frame is taken at its own angle, so the
+  window is an angle instead (`local_span`, fit units): the samples within LOCAL_SPAN of the furthest
+  one, what LOCAL_POSITIONS positions of the recording's 2.25 deg step span (what tuning replays).
 
 All but ``paper`` share two more rules. **The observation guard**: if the frames
 at the furthest position already average <= n_t, theta_p = x_now whatever the
@@ -74,6 +76,7 @@ DROP_BASES = ("lcb", "logfit_lcb", "fw_lcb")  # variants offered with the drop d
 VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb", "fw", "fw_lcb", "local", "local_lcb",
             *(f"{v}_drop" for v in DROP_BASES))
 LOCAL_POSITIONS = 4  # sampling positions in the window of the local-rate variants
+LOCAL_SPAN = (LOCAL_POSITIONS - 1) * 2.25  # deg: that window as an angle at the recording's step (continuous sampling)
 _GRID = 121  # scan points for the first crossing of a confidence band
 GUARD_TOL = 0.1  # fit units (deg, mm): frames this close to the furthest one count as "here" (pose jitter)
 
@@ -278,12 +281,15 @@ def _log1p_jacobian(x: np.ndarray, a: float, k: float, m: float) -> np.ndarray:
 
 
 def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bool = True,
-                guard: bool = True, time_budget_s: float = 0.25) -> ModelFit:
+                guard: bool = True, time_budget_s: float = 0.25, local_span: float | None = None) -> ModelFit:
     """Fit samples (x in fit units) with the named variant. Never raises for bad data.
 
     `tail_fallback=False` / `guard=False` switch the exponential-tail fallback / the observation guard
     off (ablations; ``paper`` uses neither). `time_budget_s` caps each fit (live loop); offline
     evaluation should pass math.inf so that its results cannot depend on machine load.
+    `local_span` (fit units): the local variants' window as an angle (samples within it of the furthest
+    one) instead of the last LOCAL_POSITIONS positions — continuous sampling, where every frame has its
+    own angle and four "positions" would be four frames a fraction of a degree apart.
     """
     if variant not in VARIANTS:
         raise ValueError(f"unknown model variant {variant!r}; expected one of {VARIANTS}")
@@ -300,7 +306,7 @@ def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bo
         last = x >= x.max() - GUARD_TOL
         obs = (float(x.max()), float(np.mean(n[last])))
     if variant.startswith("local"):
-        return _fit_local(variant, x, n, z, obs, t0)
+        return _fit_local(variant, x, n, z, obs, t0, local_span)
     if variant.startswith("fw") and sample_problem(x, n) is None:
         fw = fit_free_width(x, n, time_budget_s=time_budget_s)
         if fw.ok:
@@ -338,17 +344,23 @@ def last_positions(x: np.ndarray, k: int) -> np.ndarray:
 
 
 def _fit_local(variant: str, x: np.ndarray, n: np.ndarray, z: float, obs: tuple[float, float] | None,
-               t0: float) -> ModelFit:
-    """The local-rate variants: the exponential tail fitted on the last LOCAL_POSITIONS positions."""
+               t0: float, span: float | None = None) -> ModelFit:
+    """The local-rate variants: the exponential tail fitted on the last LOCAL_POSITIONS positions, or on
+    the samples within `span` (fit units) of the furthest one."""
     bad = sample_problem(x, n)
     if bad is not None:
         return ModelFit(variant, FitResult(False, None, None, bad, 0, math.nan, time.perf_counter() - t0, len(x)), z)
-    m = last_positions(x, LOCAL_POSITIONS)
+    if span is None:
+        m, where = last_positions(x, LOCAL_POSITIONS), f"the last {LOCAL_POSITIONS} positions"
+    else:
+        if not (math.isfinite(span) and span > 0):
+            raise ValueError(f"local_span must be a positive number, got {span}")
+        m, where = x >= x.max() - span - GUARD_TOL, f"the last {span:g} (fit units)"
     tail = fit_tail(x[m], n[m])
     if isinstance(tail, str):
         return ModelFit(variant, FitResult(False, None, None, f"local rate: {tail}", 0, math.nan,
                                            time.perf_counter() - t0, len(x)), z, observed=obs)
     params = tail.emg_params()
-    res = FitResult(True, params, None, f"ok: local rate over the last {LOCAL_POSITIONS} positions", 0,
+    res = FitResult(True, params, None, f"ok: local rate over {where}", 0,
                     float(np.sqrt(np.mean((emg(x[m], *params) - n[m]) ** 2))), time.perf_counter() - t0, int(m.sum()))
     return ModelFit(variant, res, z, tail, obs)

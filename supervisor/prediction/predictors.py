@@ -44,14 +44,19 @@ class _FittingPredictor:
     kind = "base"
 
     def __init__(self, n_t: float, step: float, variant: str = "paper", axis: Axis = ANGLE,
-                 x_max: float = math.radians(45.0)) -> None:
+                 x_max: float = math.radians(45.0), local_span: float | None = None) -> None:
+        """`local_span` (SI): the local variants' window as an angle or a distance instead of the last
+        positions (continuous sampling; models.fit_variant)."""
         if not (math.isfinite(n_t) and n_t > 0):
             raise ValueError(f"n_t must be a positive number, got {n_t}")
         if not (math.isfinite(step) and step > 0):
             raise ValueError(f"step must be > 0, got {step}")
         if variant not in VARIANTS:
             raise ValueError(f"unknown model variant {variant!r}; expected one of {VARIANTS}")
+        if local_span is not None and not (math.isfinite(local_span) and local_span > 0):
+            raise ValueError(f"local_span must be > 0, got {local_span}")
         self.n_t, self.step, self.variant, self.axis, self.x_max = float(n_t), float(step), variant, axis, float(x_max)
+        self.local_span = None if local_span is None else float(axis.to_fit(local_span))
         self.samples = _Samples()
         self.last: Prediction | None = None
 
@@ -61,7 +66,7 @@ class _FittingPredictor:
 
     def _fit(self) -> ModelFit:
         s = self.samples
-        return fit_variant(self.variant, self.axis.to_fit(np.array(s.xs)), np.array(s.ns))
+        return fit_variant(self.variant, self.axis.to_fit(np.array(s.xs)), np.array(s.ns), local_span=self.local_span)
 
     def _predict(self, mf: ModelFit) -> Prediction:
         x_now = self.samples.x_now
@@ -87,8 +92,8 @@ class LongRangePredictor(_FittingPredictor):
     kind = "long_range"
 
     def __init__(self, n_t: float, step: float, variant: str = "paper", axis: Axis = ANGLE,
-                 x_max: float = math.radians(45.0), k_positions: int = 4) -> None:
-        super().__init__(n_t, step, variant, axis, x_max)
+                 x_max: float = math.radians(45.0), k_positions: int = 4, local_span: float | None = None) -> None:
+        super().__init__(n_t, step, variant, axis, x_max, local_span)
         if k_positions < 2:
             raise ValueError(f"k_positions must be >= 2, got {k_positions}")
         self.k_positions = k_positions
@@ -213,19 +218,20 @@ PREDICTORS = ("next_step", "long_range", "static", "mlp")
 def make_predictor(kind: str, variant: str, n_t: float, step: float, *, axis: Axis = ANGLE,
                    hard_limit: float = math.radians(45.0), static_limit: float | None = None, seed: int = 0,
                    error_kappa: float | None = None, tolerance_t: float | None = None,
-                   tolerance_r: float | None = None):
+                   tolerance_r: float | None = None, local_span: float | None = None):
     """The predictor a stage names (`predictor`, `variant`, `n_t`, `step`), wrapped in the error-aware
-    boundary when the stage sets `error_kappa` (with its tolerance, SI)."""
+    boundary when the stage sets `error_kappa` (with its tolerance, SI). `local_span` (SI): the local
+    variants' window as an angle (continuous sampling)."""
     if error_kappa is not None:
         if tolerance_t is None or tolerance_r is None:
             raise ValueError("the error-aware boundary needs the stage's tolerance (tolerance_t, tolerance_r)")
         base = make_predictor(kind, variant, n_t, step, axis=axis, hard_limit=hard_limit,
-                              static_limit=static_limit, seed=seed)
+                              static_limit=static_limit, seed=seed, local_span=local_span)
         return ErrorAwarePredictor(base, tolerance_t, tolerance_r, error_kappa, step, hard_limit)
     if kind == "next_step":
-        return NextStepPredictor(n_t, step, variant, axis, hard_limit)
+        return NextStepPredictor(n_t, step, variant, axis, hard_limit, local_span)
     if kind == "long_range":
-        return LongRangePredictor(n_t, step, variant, axis, hard_limit)
+        return LongRangePredictor(n_t, step, variant, axis, hard_limit, local_span=local_span)
     if kind == "static":
         return StaticEnvelope(hard_limit if static_limit is None else static_limit, step)
     if kind == "mlp":

@@ -34,6 +34,7 @@ from supervisor.motion.joint_move import move_camera_to
 from supervisor.motion.paths import ArcPath
 from supervisor.motion.plan import MotionRejected, PathCheck, PathFollower, check_path
 from supervisor.prediction import make_predictor
+from supervisor.prediction.models import LOCAL_SPAN
 from supervisor.runtime.capture import CaptureThread, InlineFrames
 from supervisor.runtime.events import EventLog
 from supervisor.runtime.fits import ProcessFits
@@ -237,9 +238,12 @@ class ArcPlan:
 
 
 def stage_predictor(st: StageConfig):
-    """The predictor a stage names, with the error-aware boundary when the stage sets `error_kappa`."""
+    """The predictor a stage names, with the error-aware boundary when the stage sets `error_kappa`.
+    Continuous sampling reads the local variants' rate over an angle (LOCAL_SPAN), not over positions."""
+    span = math.radians(LOCAL_SPAN) if st.sampling == "continuous" else None
     return make_predictor(st.predictor, st.variant, st.n_t, st.step, hard_limit=st.hard_limit,
-                          error_kappa=st.error_kappa, tolerance_t=st.tolerance_t, tolerance_r=st.tolerance_r)
+                          error_kappa=st.error_kappa, tolerance_t=st.tolerance_t, tolerance_r=st.tolerance_r,
+                          local_span=span)
 
 
 class Supervisor:
