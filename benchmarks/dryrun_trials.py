@@ -33,23 +33,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
 
 
-def _trial(args: tuple[str, float, str, str, str, str | None, bool]) -> dict:
+def _trial(args: tuple[str, float, str, str, str, str | None, bool, int]) -> dict:
     import cv2
 
     cv2.setNumThreads(1)
     from supervisor.config import load_config
     from supervisor.dryrun import DryRunSpec, run_dry_run
 
-    scene, az, sampling, stage, out, config, resume = args
+    scene, az, sampling, stage, out, config, resume, seed = args
     done = Path(out) / "summary.json"
-    if resume and done.is_file():  # a trial an interrupted run finished (same stage and config: checked)
+    if resume and done.is_file():  # a trial an interrupted run finished (same stage, config and seed: checked)
         s = json.loads(done.read_text())
-        if s.get("stage") == stage and s.get("config_sha256") == load_config(config).sha256:
+        if (s.get("stage") == stage and s.get("config_sha256") == load_config(config).sha256
+                and s.get("seed") == seed):
             return s
     cfg = load_config(config)
     # an arc the arm cannot complete at the stage's top speed runs its reachable part (the summary's
     # max executed angle and halt say where it ended) instead of ending the whole suite
-    spec = DryRunSpec(stage=stage, azimuth=math.radians(az), sampling=sampling, scene=scene, accept_reachable=True)
+    spec = DryRunSpec(stage=stage, azimuth=math.radians(az), sampling=sampling, scene=scene, accept_reachable=True,
+                      seed=seed)
     return run_dry_run(cfg, spec, Path(out), progress=lambda m: None)
 
 
@@ -116,6 +118,8 @@ def main() -> int:
     ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: the suite's)")
     ap.add_argument("--azimuths", default="0,90,270")
     ap.add_argument("--modes", default="stop_and_go,continuous")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="the renders' noise seed: another seed draws fresh frames and boundaries (held-out trials)")
     ap.add_argument("--resume", action="store_true", help="reuse trials a previous run of the same stage and config "
                     "finished (their summary.json)")
     a = ap.parse_args()
@@ -123,9 +127,9 @@ def main() -> int:
     scenes = (a.scenes or ",".join(SUITES[a.suite])).split(",")
     labels = trial_labels(scenes)
     trials = [(sc, float(az), mode, a.stage, str(trial_dir(out, f"{labels[sc]}_az{int(float(az)):03d}_{mode}")),
-               a.config, a.resume)
+               a.config, a.resume, a.seed)
               for sc in scenes for az in a.azimuths.split(",") for mode in a.modes.split(",")]
-    print(f"{len(trials)} trials, stage {a.stage}", file=sys.stderr)
+    print(f"{len(trials)} trials, stage {a.stage}, seed {a.seed}", file=sys.stderr)
     rows = []
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(a.jobs, mp_context=ctx) as pool:
