@@ -14,6 +14,7 @@ Reports, never passes or fails.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import sys
@@ -93,10 +94,10 @@ def main() -> int:
         ax.set_xlabel(f"boundary in {a.label_a} [deg]")
         ax.set_ylabel(f"boundary in {a.label_b} [deg]")
     fig.tight_layout()
-    tmp = a.out.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=110)
     plt.close(fig)
-    tmp.replace(a.out.with_suffix(".png"))
+    write_atomic(a.out.with_suffix(".png"), png.getvalue())
     print(f"wrote {a.out.with_suffix('.json')}, {a.out.with_suffix('.png')}", file=sys.stderr)
     return 0
 

@@ -293,6 +293,8 @@ def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bo
     """
     if variant not in VARIANTS:
         raise ValueError(f"unknown model variant {variant!r}; expected one of {VARIANTS}")
+    if local_span is not None and not (math.isfinite(local_span) and local_span > 0):
+        raise ValueError(f"local_span must be a positive number, got {local_span}")
     if variant.endswith("_drop"):
         base = fit_variant(variant.removesuffix("_drop"), x, n, tail_fallback=tail_fallback, guard=guard,
                            time_budget_s=time_budget_s)
@@ -353,8 +355,6 @@ def _fit_local(variant: str, x: np.ndarray, n: np.ndarray, z: float, obs: tuple[
     if span is None:
         m, where = last_positions(x, LOCAL_POSITIONS), f"the last {LOCAL_POSITIONS} positions"
     else:
-        if not (math.isfinite(span) and span > 0):
-            raise ValueError(f"local_span must be a positive number, got {span}")
         m, where = x >= x.max() - span - GUARD_TOL, f"the last {span:g} (fit units)"
     tail = fit_tail(x[m], n[m])
     if isinstance(tail, str):
