@@ -288,3 +288,46 @@ def test_a_wait_left_over_from_an_earlier_request_does_not_time_out_a_new_one():
     finally:
         stall.release.set()
         cap.close()
+
+
+def test_an_arc_the_present_configuration_cannot_complete_starts_from_another_of_the_same_view():
+    """plate_clearcoat at azimuth 270: from the configuration the setup move reaches, the wrist passes near a
+    singularity about 32 deg along the arc (joint 5's speed, then IK, fail); the redundant arm has other
+    configurations of the same camera pose from which the whole arc is feasible."""
+    from sim.scene import load_scene
+    from supervisor.localization.model import BoxROI
+    from supervisor.motion.paths import start_camera_pose
+    from supervisor.motion.plan import MotionRejected
+    from supervisor.runtime.builder import Supervisor, open_drivers
+
+    cfg = load_config(None)
+    st = cfg.stage("explore")
+    scene = load_scene("plate_clearcoat")
+    pivot = (scene.T_base_scene @ np.append(scene.pivot, 1.0))[:3]
+    T0 = start_camera_pose(pivot, scene.view.radius, scene.view.elevation, scene.view.heading)
+    drivers = open_drivers(cfg, scene=scene)
+    sup = Supervisor(cfg, drivers, EventLog(None), stage=st)
+    try:
+        T_target_box, half = scene.target_box_in_target()
+        sup.capture_model(T0, BoxROI(T_target_box, half), board=scene.board)  # ends at T0, the arc's start
+        q_before = drivers.robot.state().q.copy()
+        present = check_path(ArcPath(T0, pivot, 270 * DEG), st.hard_limit, st.limits, drivers.kin, q_before)
+        assert not present.ok and present.reachable < 35 * DEG
+        plan = sup.plan_arc(pivot, 270 * DEG)  # complete from another configuration: not refused
+        assert plan.check.ok and plan.s_end == pytest.approx(st.hard_limit) and plan.q_start is not None
+        assert np.array_equal(drivers.robot.state().q, q_before)  # planning moved nothing
+        changed = sup.events.of_kind("arc_start_changed")
+        assert len(changed) == 1 and "32." in changed[0]["detail"] and changed[0]["reachable_deg"] == pytest.approx(45)
+        with pytest.raises(MotionRejected, match="not in the configuration the arc was planned from"):
+            sup.run(plan)  # the camera is at the start view, but the arm would follow the wrong branch
+        assert np.array_equal(drivers.robot.state().q, q_before)
+        sup.move_to_arc_start(plan)
+        q = drivers.robot.state().q
+        assert np.max(np.abs(q - plan.q_start)) < 1e-6
+        T = drivers.kin.fk(q, "camera")
+        assert np.linalg.norm(T[:3, 3] - T0[:3, 3]) < 1e-4  # the camera is back at the model view
+        assert np.allclose(T[:3, :3], T0[:3, :3], atol=1e-4)
+        assert check_path(plan.path, st.hard_limit, st.limits, drivers.kin, q).ok
+    finally:
+        sup.close()
+        drivers.close()

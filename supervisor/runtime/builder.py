@@ -30,9 +30,9 @@ from supervisor.config import Config
 from supervisor.errors import CameraTimeout, KinematicsError
 from supervisor.geometry import make_T
 from supervisor.localization.model import TargetModel, build_model
-from supervisor.motion.joint_move import move_camera_to
+from supervisor.motion.joint_move import move_camera_to, move_joints
 from supervisor.motion.paths import ArcPath
-from supervisor.motion.plan import MotionRejected, PathCheck, PathFollower, check_path
+from supervisor.motion.plan import START_TOLERANCE, MotionRejected, PathCheck, PathFollower, check_path
 from supervisor.prediction import make_predictor
 from supervisor.prediction.models import LOCAL_SPAN
 from supervisor.runtime.capture import CaptureThread, InlineFrames
@@ -140,6 +140,11 @@ def open_drivers(cfg: Config, *, realtime: bool = False, scene: str | None = Non
 
 
 SETUP_MARGIN = math.radians(1.0)  # rad: setup poses keep this far inside the joint limits where they can
+# An arc the arm cannot complete from its configuration at the start view is tried from other configurations
+# of the same camera pose (IK from these many seeds, drawn over the joint range by a fixed generator so that
+# a plan is reproducible), checked every ARC_START_DS first and the chosen one at the full resolution.
+ARC_START_SEEDS = 32
+ARC_START_DS = math.radians(0.5)
 SWITCH_INTERVAL = 2e-4  # s: how long a thread holding the GIL may keep a waiting tick thread out
 
 
@@ -235,6 +240,17 @@ class ArcPlan:
     azimuth: float  # rad
     s_end: float  # rad, where the motion ends (the reachable part when `check` failed and it was accepted)
     check: PathCheck
+    # joints the arc starts from when they are not the arm's configuration at planning: the same camera pose
+    # in another configuration of the redundant arm, from which the arc reaches further (move_to_arc_start)
+    q_start: np.ndarray | None = None
+
+
+def _problem_text(check: PathCheck) -> str:
+    p = check.problem
+    if p is None:
+        return "no problem"
+    where = f"joint {p.joint + 1} " if p.joint is not None else ""
+    return f"{where}{p.reason} at {math.degrees(p.s):.2f} deg"
 
 
 def stage_predictor(st: StageConfig):
@@ -314,19 +330,32 @@ class Supervisor:
             return
         robot.move_to(self.setup_goal(T_base_cam, robot.state().q))
 
+    def move_joints_to(self, q_goal: np.ndarray) -> None:
+        """A planned, checked setup move to rest at `q_goal` (the driver's own point-to-point move if it has
+        one, else the Ruckig joint plan tick by tick)."""
+        robot = self.drivers.robot
+        if getattr(getattr(robot, "inner", robot), "move_to", None) is None:
+            move_joints(robot, self.drivers.kin, np.asarray(q_goal, float), self.pacer())
+        else:
+            robot.move_to(np.asarray(q_goal, float))
+
     def setup_goal(self, T_base_cam: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
         """Joints for a setup pose (a model view, an arc's start): kept SETUP_MARGIN inside every joint limit
         where the arm allows it, so that a real arm settling a fraction of a mrad past its goal (franky-sim:
         +-0.5 mrad) does not start its arc beyond a limit; at the limits themselves otherwise."""
-        kin = self.drivers.kin
+        setup_kin = self._setup_kinematics()
+        try:
+            return setup_kin.ik_or_raise(T_base_cam, np.clip(q_seed, setup_kin.q_min, setup_kin.q_max), "camera")
+        except KinematicsError:
+            return self.drivers.kin.ik_or_raise(T_base_cam, q_seed, "camera")
+
+    def _setup_kinematics(self) -> PandaKinematics:
+        """The arm's kinematics with joint limits SETUP_MARGIN inside the arm's (built once)."""
         if self._setup_kin is None:
+            kin = self.drivers.kin
             self._setup_kin = PandaKinematics(T_flange_cam=kin.T_flange_cam, urdf=self.cfg.robot.urdf,
                                               arm=self.cfg.robot.arm, position_margin=SETUP_MARGIN)
-        try:
-            return self._setup_kin.ik_or_raise(T_base_cam, np.clip(q_seed, self._setup_kin.q_min,
-                                                                   self._setup_kin.q_max), "camera")
-        except KinematicsError:
-            return kin.ik_or_raise(T_base_cam, q_seed, "camera")
+        return self._setup_kin
 
     def frame_at_rest(self, timeout: float | None = None):
         """One new frame exposed after now (the robot is at rest); CameraTimeout if none comes in time
@@ -379,9 +408,12 @@ class Supervisor:
                  accept_reachable: bool = False) -> ArcPlan:
         """The arc from the model view about `pivot_base`, checked whole before anything moves.
 
-        Ends at `sweep` (default: the stage's hard limit; never beyond it). A motion the arm cannot
-        complete raises MotionRejected (which joint, which limit, where, and the reachable part)
-        unless `accept_reachable`, which plans the reachable part instead.
+        Ends at `sweep` (default: the stage's hard limit; never beyond it). When the arc cannot be completed
+        from the arm's present configuration (a joint limit, or the wrist or elbow passing a singularity on the
+        way), other configurations of the same camera pose are checked: the plan starts from the one that
+        reaches furthest (`q_start`; `move_to_arc_start` moves there, the camera ending where it was). A motion
+        no configuration completes raises MotionRejected (which joint, which limit, where, and the reachable
+        part) unless `accept_reachable`, which plans the furthest reachable part instead.
         """
         if self.T_base_cam_model is None:
             raise MotionRejected("no target model: build or load one first", 0.0)
@@ -390,14 +422,26 @@ class Supervisor:
         st = self._stage
         s_end = st.hard_limit if sweep is None else min(float(sweep), st.hard_limit)
         path = ArcPath(self.T_base_cam_model, np.asarray(pivot_base, float), azimuth)
-        check = check_path(path, s_end, st.limits, self.drivers.kin, self.drivers.robot.state().q,
-                           margin=st.step)
+        q_now = self.drivers.robot.state().q
+        check = check_path(path, s_end, st.limits, self.drivers.kin, q_now, margin=st.step)
+        q_start = None
+        if not check.ok:
+            found = self._other_arc_start(path, s_end, q_now, check.reachable)
+            if found is not None:
+                q_start, other = found
+                self.events.emit(self.drivers.clock.now(), "arc_start_changed",
+                                 detail=(f"from the present configuration the arc ends at "
+                                         f"{math.degrees(check.reachable):.2f} deg ({_problem_text(check)}); from "
+                                         f"another configuration of the same camera pose it reaches "
+                                         f"{math.degrees(other.reachable):.2f} deg"),
+                                 reachable_deg=math.degrees(other.reachable), q_start=[float(v) for v in q_start],
+                                 largest_joint_change_deg=math.degrees(float(np.max(np.abs(q_start - q_now)))))
+                check = other
         if not check.ok:
             p = check.problem
             assert p is not None
-            where = f"joint {p.joint + 1} " if p.joint is not None else ""
-            text = (f"the arm cannot complete the arc to {math.degrees(s_end):.2f} deg: {where}{p.reason} "
-                    f"at {math.degrees(p.s):.2f} deg; reachable part: 0-{math.degrees(check.reachable):.2f} deg")
+            text = (f"the arm cannot complete the arc to {math.degrees(s_end):.2f} deg from any configuration tried: "
+                    f"{_problem_text(check)}; reachable part: 0-{math.degrees(check.reachable):.2f} deg")
             self.events.emit(self.drivers.clock.now(), "motion_refused" if not accept_reachable else
                              "motion_shortened", detail=text, reachable_deg=math.degrees(check.reachable))
             if not accept_reachable or check.reachable <= 0.0:
@@ -405,7 +449,46 @@ class Supervisor:
                 err.reachable = check.reachable  # type: ignore[attr-defined]
                 raise err
             s_end = check.reachable
-        return ArcPlan(path, float(azimuth), float(s_end), check)
+        return ArcPlan(path, float(azimuth), float(s_end), check, q_start)
+
+    def _other_arc_start(self, path: ArcPath, s_end: float, q_now: np.ndarray,
+                         reached: float) -> tuple[np.ndarray, PathCheck] | None:
+        """(joints, check) of the configuration of the arc's start pose that reaches further than `reached`
+        (the furthest; among those completing the arc, the nearest to `q_now` by the largest joint change),
+        or None. Setup-pose IK (SETUP_MARGIN inside the limits) from ARC_START_SEEDS fixed seeds."""
+        st, kin = self._stage, self.drivers.kin
+        setup_kin = self._setup_kinematics()
+        rng = np.random.default_rng(0)
+        T0 = path.pose(0.0)
+        found: list[tuple[np.ndarray, float]] = []
+        for _ in range(ARC_START_SEEDS):
+            res = setup_kin.ik(T0, rng.uniform(setup_kin.q_min, setup_kin.q_max), "camera", max_iter=300)
+            if not res.success or any(np.max(np.abs(res.q - q)) < 1e-2 for q, _ in found) \
+                    or np.max(np.abs(res.q - q_now)) < 1e-2:
+                continue
+            coarse = check_path(path, s_end, st.limits, kin, res.q, ds=ARC_START_DS, margin=st.step)
+            found.append((res.q, coarse.reachable))
+        # furthest first; among equals, the smallest move from where the arm is
+        found.sort(key=lambda c: (-round(c[1], 9), float(np.max(np.abs(c[0] - q_now)))))
+        for q, coarse_reach in found:
+            if coarse_reach <= reached + 1e-9:
+                break
+            fine = check_path(path, s_end, st.limits, kin, q, margin=st.step)  # the follower's resolution
+            if fine.reachable > reached + 1e-9:
+                return q, fine
+        return None
+
+    def move_to_arc_start(self, plan: ArcPlan) -> None:
+        """A setup move into the configuration `plan` starts from (nothing when it has none, or the arm is in
+        it): the camera ends at the model view again, in another configuration of the arm."""
+        if plan.q_start is None:
+            return
+        q_now = self.drivers.robot.state().q
+        if np.max(np.abs(q_now - plan.q_start)) <= START_TOLERANCE:
+            return
+        self.events.emit(self.drivers.clock.now(), "arc_start_move",
+                         largest_joint_change_deg=math.degrees(float(np.max(np.abs(plan.q_start - q_now)))))
+        self.move_joints_to(plan.q_start)
 
     def run(self, plan: ArcPlan, *, max_time: float = 600.0, heartbeat=None, on_brake=None,
             observer=None) -> RunRecord:
@@ -416,6 +499,10 @@ class Supervisor:
         if self.model is None or self.T_base_cam_model is None:
             raise MotionRejected("no target model: build or load one first", 0.0)
         d, st, cfg = self.drivers, self._stage, self.cfg
+        if plan.q_start is not None and np.max(np.abs(d.robot.state().q - plan.q_start)) > START_TOLERANCE:
+            # the camera may be at the start view in another configuration: the arc would follow the wrong branch
+            raise MotionRejected("the arm is not in the configuration the arc was planned from "
+                                 "(move_to_arc_start first)", 0.0)
         worker = self._worker_for_run()
         try:
             follower = PathFollower(plan.path, st.limits, d.kin, d.robot.state().q, d.robot.control_period)
