@@ -109,7 +109,7 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
         plan = sup.plan_arc(pivot_base, spec.azimuth, spec.sweep, accept_reachable=spec.accept_reachable)
         if plan.s_end < (spec.sweep or stage.hard_limit) - 1e-9:
             progress(f"  the arc is shortened to its reachable part, 0-{math.degrees(plan.s_end):.2f} deg")
-        if plan.q_start is not None:
+        if plan.start_changed:
             progress("  the arc starts from another configuration of the arm (the present one cannot complete it)")
             sup.move_to_arc_start(plan)
         record = sup.run(plan)

@@ -314,7 +314,7 @@ def test_an_arc_the_present_configuration_cannot_complete_starts_from_another_of
         present = check_path(ArcPath(T0, pivot, 270 * DEG), st.hard_limit, st.limits, drivers.kin, q_before)
         assert not present.ok and present.reachable < 35 * DEG
         plan = sup.plan_arc(pivot, 270 * DEG)  # complete from another configuration: not refused
-        assert plan.check.ok and plan.s_end == pytest.approx(st.hard_limit) and plan.q_start is not None
+        assert plan.check.ok and plan.s_end == pytest.approx(st.hard_limit) and plan.start_changed
         assert np.array_equal(drivers.robot.state().q, q_before)  # planning moved nothing
         changed = sup.events.of_kind("arc_start_changed")
         assert len(changed) == 1 and "32." in changed[0]["detail"] and changed[0]["reachable_deg"] == pytest.approx(45)
@@ -328,6 +328,12 @@ def test_an_arc_the_present_configuration_cannot_complete_starts_from_another_of
         assert np.linalg.norm(T[:3, 3] - T0[:3, 3]) < 1e-4  # the camera is back at the model view
         assert np.allclose(T[:3, :3], T0[:3, :3], atol=1e-4)
         assert check_path(plan.path, st.hard_limit, st.limits, drivers.kin, q).ok
+        # any plan runs only from the configuration it was checked from: the arm moved since, it is refused
+        again = sup.plan_arc(pivot, 270 * DEG)
+        assert not again.start_changed and np.array_equal(again.q_start, q)  # complete from where the arm is
+        sup.move_joints_to(q + np.array([0, 0, 0, 0, 0, 0, 0.01]))
+        with pytest.raises(MotionRejected, match="not in the configuration the arc was planned from$"):
+            sup.run(again)
     finally:
         sup.close()
         drivers.close()

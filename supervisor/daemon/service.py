@@ -371,7 +371,7 @@ class Daemon:
             self._log("return_to_start")
             self.sup.move_camera_to(self.sup.T_base_cam_model)
         plan = self.sup.plan_arc(pivot, math.radians(az), None if sweep is None else math.radians(sweep))
-        if plan.q_start is not None:  # the arc completes only from another configuration of the start view
+        if plan.start_changed:  # the arc completes only from another configuration of the start view
             self._log("arc_start_move")
             self.sup.move_to_arc_start(plan)
         self._next_plan = plan

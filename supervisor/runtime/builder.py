@@ -240,9 +240,10 @@ class ArcPlan:
     azimuth: float  # rad
     s_end: float  # rad, where the motion ends (the reachable part when `check` failed and it was accepted)
     check: PathCheck
-    # joints the arc starts from when they are not the arm's configuration at planning: the same camera pose
-    # in another configuration of the redundant arm, from which the arc reaches further (move_to_arc_start)
-    q_start: np.ndarray | None = None
+    # joints the arc was checked from and runs from: the arm's configuration at planning, or (`start_changed`)
+    # another configuration of the same camera pose from which the arc reaches further (move_to_arc_start)
+    q_start: np.ndarray
+    start_changed: bool = False
 
 
 def _problem_text(check: PathCheck) -> str:
@@ -422,13 +423,13 @@ class Supervisor:
         st = self._stage
         s_end = st.hard_limit if sweep is None else min(float(sweep), st.hard_limit)
         path = ArcPath(self.T_base_cam_model, np.asarray(pivot_base, float), azimuth)
-        q_now = self.drivers.robot.state().q
+        q_now = self.drivers.robot.state().q.copy()
         check = check_path(path, s_end, st.limits, self.drivers.kin, q_now, margin=st.step)
-        q_start = None
+        q_start, changed = q_now, False
         if not check.ok:
             found = self._other_arc_start(path, s_end, q_now, check.reachable)
             if found is not None:
-                q_start, other = found
+                (q_start, other), changed = found, True
                 self.events.emit(self.drivers.clock.now(), "arc_start_changed",
                                  detail=(f"from the present configuration the arc ends at "
                                          f"{math.degrees(check.reachable):.2f} deg ({_problem_text(check)}); from "
@@ -449,7 +450,7 @@ class Supervisor:
                 err.reachable = check.reachable  # type: ignore[attr-defined]
                 raise err
             s_end = check.reachable
-        return ArcPlan(path, float(azimuth), float(s_end), check, q_start)
+        return ArcPlan(path, float(azimuth), float(s_end), check, q_start, changed)
 
     def _other_arc_start(self, path: ArcPath, s_end: float, q_now: np.ndarray,
                          reached: float) -> tuple[np.ndarray, PathCheck] | None:
@@ -479,9 +480,9 @@ class Supervisor:
         return None
 
     def move_to_arc_start(self, plan: ArcPlan) -> None:
-        """A setup move into the configuration `plan` starts from (nothing when it has none, or the arm is in
-        it): the camera ends at the model view again, in another configuration of the arm."""
-        if plan.q_start is None:
+        """A setup move into the other configuration `plan` starts from (nothing when the plan keeps the arm's,
+        or the arm is in it): the camera ends at the model view again, in another configuration of the arm."""
+        if not plan.start_changed:
             return
         q_now = self.drivers.robot.state().q
         if np.max(np.abs(q_now - plan.q_start)) <= START_TOLERANCE:
@@ -499,10 +500,11 @@ class Supervisor:
         if self.model is None or self.T_base_cam_model is None:
             raise MotionRejected("no target model: build or load one first", 0.0)
         d, st, cfg = self.drivers, self._stage, self.cfg
-        if plan.q_start is not None and np.max(np.abs(d.robot.state().q - plan.q_start)) > START_TOLERANCE:
-            # the camera may be at the start view in another configuration: the arc would follow the wrong branch
-            raise MotionRejected("the arm is not in the configuration the arc was planned from "
-                                 "(move_to_arc_start first)", 0.0)
+        if np.max(np.abs(d.robot.state().q - plan.q_start)) > START_TOLERANCE:
+            # the arm moved since planning, or is at the start view in another configuration: the arc would
+            # follow a branch that was not checked
+            raise MotionRejected("the arm is not in the configuration the arc was planned from"
+                                 + (" (move_to_arc_start first)" if plan.start_changed else ""), 0.0)
         worker = self._worker_for_run()
         try:
             follower = PathFollower(plan.path, st.limits, d.kin, d.robot.state().q, d.robot.control_period)
