@@ -290,10 +290,50 @@ def test_a_wait_left_over_from_an_earlier_request_does_not_time_out_a_new_one():
         cap.close()
 
 
+class _RecordingRobot:
+    """The real driver, every command it is given kept (what a setup move commanded, tick by tick)."""
+
+    def __init__(self, robot) -> None:
+        self._robot = robot
+        self.commands: list[np.ndarray] = []
+
+    def command(self, q):
+        self.commands.append(np.array(q, float))
+        return self._robot.command(q)
+
+    def __getattr__(self, name):
+        return getattr(self._robot, name)
+
+
+def test_a_straight_joint_move_keeps_every_tick_on_the_line_and_clearance_is_measured_on_the_checked_arc():
+    from supervisor.motion.joint_move import joint_line, plan_joint_move
+
+    kin = PandaKinematics(T_flange_cam=T_FLANGE_CAM)
+    q_goal = Q_START + np.array([0.4, -0.2, 0.3, 0.25, -0.5, 0.3, 1.2])
+    plan = plan_joint_move(kin, Q_START, np.zeros(7), q_goal, 0.001, straight=True)
+    d = q_goal - Q_START
+    lam = (plan - Q_START) @ d / (d @ d)
+    assert np.max(np.abs(plan - (Q_START + lam[:, None] * d))) < 1e-6 and np.all(np.diff(lam) >= -1e-12)
+    line = joint_line(Q_START, q_goal, math.radians(0.5))
+    assert np.allclose(line[0], Q_START) and np.allclose(line[-1], q_goal)
+    assert np.max(np.abs(np.diff(line, axis=0))) <= math.radians(0.5) + 1e-12
+    # the arc's clearance: the closest any body point (joint origins, flange, camera) comes to the point given
+    T0 = kin.fk(Q_START, "camera")
+    pivot = T0[:3, 3] + 0.35 * T0[:3, 2]
+    arc = ArcPath(T0, pivot, 0.0)
+    c = check_path(arc, 20 * DEG, PathLimits(10 * DEG, 20 * DEG, 200 * DEG), kin, Q_START, clearance_to=pivot)
+    pts = kin.body_points(Q_START)
+    assert pts.shape == (9, 3) and np.allclose(pts[-1], T0[:3, 3])  # the camera last
+    assert c.ok and c.clearance == pytest.approx(0.35, abs=1e-4)  # the camera, on its 0.35 m sphere about the pivot
+    assert check_path(arc, 20 * DEG, PathLimits(10 * DEG, 20 * DEG, 200 * DEG), kin, Q_START).clearance is None
+
+
 def test_an_arc_the_present_configuration_cannot_complete_starts_from_another_of_the_same_view():
     """plate_clearcoat at azimuth 270: from the configuration the setup move reaches, the wrist passes near a
     singularity about 32 deg along the arc (joint 5's speed, then IK, fail); the redundant arm has other
     configurations of the same camera pose from which the whole arc is feasible."""
+    import dataclasses
+
     from sim.scene import load_scene
     from supervisor.localization.model import BoxROI
     from supervisor.motion.paths import start_camera_pose
@@ -306,6 +346,8 @@ def test_an_arc_the_present_configuration_cannot_complete_starts_from_another_of
     pivot = (scene.T_base_scene @ np.append(scene.pivot, 1.0))[:3]
     T0 = start_camera_pose(pivot, scene.view.radius, scene.view.elevation, scene.view.heading)
     drivers = open_drivers(cfg, scene=scene)
+    robot = _RecordingRobot(drivers.robot)
+    drivers = dataclasses.replace(drivers, robot=robot)
     sup = Supervisor(cfg, drivers, EventLog(None), stage=st)
     try:
         T_target_box, half = scene.target_box_in_target()
@@ -321,7 +363,17 @@ def test_an_arc_the_present_configuration_cannot_complete_starts_from_another_of
         with pytest.raises(MotionRejected, match="not in the configuration the arc was planned from"):
             sup.run(plan)  # the camera is at the start view, but the arm would follow the wrong branch
         assert np.array_equal(drivers.robot.state().q, q_before)
+        k0 = len(robot.commands)
         sup.move_to_arc_start(plan)
+        moved = np.array(robot.commands[k0:])
+        # the move is the straight joint-space line that was checked, and no point of the arm came closer to the
+        # target than the arc itself brings it
+        d = plan.q_start - q_before
+        lam = (moved - q_before) @ d / (d @ d)
+        assert len(moved) > 100 and np.max(np.abs(moved - (q_before + lam[:, None] * d))) < 1e-6
+        assert plan.check.clearance is not None
+        closest = min(np.min(np.linalg.norm(drivers.kin.body_points(qm) - pivot, axis=1)) for qm in moved)
+        assert closest >= plan.check.clearance - 1e-3
         q = drivers.robot.state().q
         assert np.max(np.abs(q - plan.q_start)) < 1e-6
         T = drivers.kin.fk(q, "camera")

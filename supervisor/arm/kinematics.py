@@ -280,6 +280,14 @@ class PandaKinematics:
         pin.forwardKinematics(self.model, self.data, self._q(q))
         return pin.updateFramePlacement(self.model, self.data, fid).homogeneous
 
+    def body_points(self, q: np.ndarray) -> np.ndarray:
+        """Points along the arm at joint angles `q`, in base coordinates: every joint's origin, the flange and
+        the camera/tcp frames this instance has, (N, 3). What a clearance check measures (no link geometry)."""
+        pin.forwardKinematics(self.model, self.data, self._q(q))
+        pts = [self.data.oMi[j].translation for j in range(1, self.model.njoints)]
+        pts += [pin.updateFramePlacement(self.model, self.data, fid).translation for fid in self._fid.values()]
+        return np.array(pts)
+
     def jacobian(self, q: np.ndarray, frame: str = "flange") -> np.ndarray:
         """6x7 Jacobian of `frame`, LOCAL_WORLD_ALIGNED: [v_origin; omega] in base axes."""
         fid = self._frame_id(frame)

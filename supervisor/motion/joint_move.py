@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig, Trajectory
+from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
 
 from supervisor.errors import JointLimitError, RobotFault
 
@@ -47,9 +47,15 @@ def check_joint_plan(kin, q0: np.ndarray, plan: np.ndarray, dt: float) -> None:
                               f"velocity at plan tick {k + 1}")
 
 
+STRAIGHT_TOL = 1e-6  # rad: how far a straight move's planned ticks may lie off the joint-space line
+
+
 def plan_joint_move(kin, q0: np.ndarray, dq0: np.ndarray, q_goal: np.ndarray, dt: float,
-                    limits_scale: float = 0.5) -> np.ndarray:
-    """Checked Ruckig plan from (q0, dq0) to rest at `q_goal`: (N, 7) positions, the last equal to `q_goal`."""
+                    limits_scale: float = 0.5, straight: bool = False) -> np.ndarray:
+    """Checked Ruckig plan from (q0, dq0) to rest at `q_goal`: (N, 7) positions, the last equal to `q_goal`.
+
+    `straight` (from rest): phase-synchronized, every tick on the joint-space line from q0 to q_goal, so that a
+    check of that line (e.g. its clearance) holds for the move; a plan off the line raises RobotFault."""
     if not 0 < limits_scale <= 1:
         raise ValueError(f"limits_scale must be in (0, 1], got {limits_scale}")
     q_goal = np.asarray(q_goal, dtype=float)
@@ -70,16 +76,40 @@ def plan_joint_move(kin, q0: np.ndarray, dq0: np.ndarray, q_goal: np.ndarray, dt
     inp.max_velocity = (kin.dq_max * limits_scale).tolist()
     inp.max_acceleration = (kin.ddq_max * limits_scale).tolist()
     inp.max_jerk = (kin.dddq_max * limits_scale).tolist()
+    if straight:
+        inp.synchronization = Synchronization.Phase
     plan = sample_ruckig(inp, dt, "joint motion")
     plan[-1] = q_goal
+    if straight:
+        _check_straight(np.asarray(q0, float), q_goal, plan)
     check_joint_plan(kin, np.asarray(q0, float), plan, dt)
     return plan
 
 
-def move_joints(robot, kin, q_goal: np.ndarray, pacer, limits_scale: float = 0.5) -> None:
-    """Plan (and check) a move to rest at `q_goal` from the robot's state, then command it tick by tick."""
+def _check_straight(q0: np.ndarray, q_goal: np.ndarray, plan: np.ndarray) -> None:
+    d = q_goal - q0
+    n2 = float(d @ d)
+    if n2 == 0.0:
+        return
+    lam = np.clip((plan - q0) @ d / n2, 0.0, 1.0)
+    off = float(np.max(np.abs(plan - (q0 + lam[:, None] * d))))
+    if off > STRAIGHT_TOL:
+        raise RobotFault(f"Ruckig could not plan the joint motion on a straight line ({off:.2e} rad off it)")
+
+
+def joint_line(q0: np.ndarray, q_goal: np.ndarray, step: float = math.radians(0.5)) -> np.ndarray:
+    """Samples of the joint-space line from q0 to q_goal, no joint moving more than `step` between two: (N, 7),
+    both ends included (what a straight move passes through)."""
+    q0, q_goal = np.asarray(q0, float), np.asarray(q_goal, float)
+    n = max(1, int(math.ceil(float(np.max(np.abs(q_goal - q0))) / step)))
+    return q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q_goal - q0)
+
+
+def move_joints(robot, kin, q_goal: np.ndarray, pacer, limits_scale: float = 0.5, straight: bool = False) -> None:
+    """Plan (and check) a move to rest at `q_goal` from the robot's state, then command it tick by tick
+    (`straight`: on the joint-space line, see plan_joint_move)."""
     st = robot.state()
-    plan = plan_joint_move(kin, st.q, st.dq, q_goal, robot.control_period, limits_scale)
+    plan = plan_joint_move(kin, st.q, st.dq, q_goal, robot.control_period, limits_scale, straight)
     pacer.start()
     for q in plan:
         robot.command(q)

@@ -342,6 +342,9 @@ class PathCheck:
     reachable: float
     problem: MotionRejected | None
     q_end: np.ndarray | None  # joints at `reachable`
+    # with `clearance_to`: the smallest distance (m) of the arm's body points to that point over the checked
+    # samples up to `reachable`, else None
+    clearance: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -350,13 +353,14 @@ class PathCheck:
 
 def check_path(path: PathLike, s_end: float, limits: PathLimits, kin: KinematicsLike, q0: np.ndarray, *,
                s0: float = 0.0, ds: float = math.radians(0.1), frame: str = "camera",
-               margin: float = 0.0) -> PathCheck:
+               margin: float = 0.0, clearance_to: np.ndarray | None = None) -> PathCheck:
     """Plan before moving, the whole motion: IK along the path every `ds`, joint position limits, and the
     joint velocities the path needs at the stage's top speed (|dq/ds| * velocity <= dq_max).
 
     The IK follows the path from `q0` (seeded by the previous sample, no null-space pull: the branch
     the follower will track). Nothing moves. The first failing sample ends the check; `reachable` is
-    the last sample before it that passed (minus `margin`, not below `s0`).
+    the last sample before it that passed (minus `margin`, not below `s0`). `clearance_to` (a point in base
+    coordinates, e.g. the target's): also measure how close the arm's body points (`kin.body_points`) come to it.
     """
     if not (math.isfinite(s0) and math.isfinite(s_end)):
         return PathCheck(s0, s_end, s0, MotionRejected("path range is not finite", s0), None)
@@ -366,6 +370,7 @@ def check_path(path: PathLike, s_end: float, limits: PathLimits, kin: Kinematics
     grid = np.linspace(s0, s_end, n + 1)
     q_prev = np.asarray(q0, dtype=float)
     reached, q_ok = s0, None
+    near: list[float] = []  # per passed sample: the closest body point's distance to `clearance_to`
     try:
         _check_joints(kin, q_prev, None, 1.0, s0)
         for k, s in enumerate(grid):
@@ -385,6 +390,9 @@ def check_path(path: PathLike, s_end: float, limits: PathLimits, kin: Kinematics
                 raise MotionRejected(f"robot is not at the path start (joint off by {abs(q[j] - q_prev[j]):.4f} rad)",
                                      float(s), j)
             reached, q_ok, q_prev = float(s), q, q
+            if clearance_to is not None:
+                near.append(float(np.min(np.linalg.norm(kin.body_points(q) - clearance_to, axis=1))))
     except MotionRejected as exc:
-        return PathCheck(s0, s_end, max(s0, reached - margin) if q_ok is not None else s0, exc, q_ok)
-    return PathCheck(s0, s_end, float(s_end), None, q_ok)
+        return PathCheck(s0, s_end, max(s0, reached - margin) if q_ok is not None else s0, exc, q_ok,
+                         min(near) if near else None)
+    return PathCheck(s0, s_end, float(s_end), None, q_ok, min(near) if near else None)

@@ -30,7 +30,7 @@ from supervisor.config import Config
 from supervisor.errors import CameraTimeout, KinematicsError
 from supervisor.geometry import make_T
 from supervisor.localization.model import TargetModel, build_model
-from supervisor.motion.joint_move import move_camera_to, move_joints
+from supervisor.motion.joint_move import joint_line, move_camera_to, move_joints
 from supervisor.motion.paths import ArcPath
 from supervisor.motion.plan import START_TOLERANCE, MotionRejected, PathCheck, PathFollower, check_path
 from supervisor.prediction import make_predictor
@@ -145,6 +145,9 @@ SETUP_MARGIN = math.radians(1.0)  # rad: setup poses keep this far inside the jo
 # a plan is reproducible), checked every ARC_START_DS first and the chosen one at the full resolution.
 ARC_START_SEEDS = 32
 ARC_START_DS = math.radians(0.5)
+# m: the move into another start configuration may come this much closer to the target than the arc does (the
+# two configurations place the camera at the same pose only to the IK's tolerance)
+ARC_START_CLEARANCE_TOL = 1e-3
 SWITCH_INTERVAL = 2e-4  # s: how long a thread holding the GIL may keep a waiting tick thread out
 
 
@@ -331,12 +334,13 @@ class Supervisor:
             return
         robot.move_to(self.setup_goal(T_base_cam, robot.state().q))
 
-    def move_joints_to(self, q_goal: np.ndarray) -> None:
-        """A planned, checked setup move to rest at `q_goal` (the driver's own point-to-point move if it has
-        one, else the Ruckig joint plan tick by tick)."""
+    def move_joints_to(self, q_goal: np.ndarray, straight: bool = False) -> None:
+        """A planned, checked setup move to rest at `q_goal`: the driver's own point-to-point move if it has one
+        (franka: the controller's joint-space planner), else the Ruckig joint plan tick by tick, on the
+        joint-space line itself when `straight` (see plan_joint_move)."""
         robot = self.drivers.robot
         if getattr(getattr(robot, "inner", robot), "move_to", None) is None:
-            move_joints(robot, self.drivers.kin, np.asarray(q_goal, float), self.pacer())
+            move_joints(robot, self.drivers.kin, np.asarray(q_goal, float), self.pacer(), straight=straight)
         else:
             robot.move_to(np.asarray(q_goal, float))
 
@@ -412,7 +416,8 @@ class Supervisor:
         Ends at `sweep` (default: the stage's hard limit; never beyond it). When the arc cannot be completed
         from the arm's present configuration (a joint limit, or the wrist or elbow passing a singularity on the
         way), other configurations of the same camera pose are checked: the plan starts from the one that
-        reaches furthest (`q_start`; `move_to_arc_start` moves there, the camera ending where it was). A motion
+        reaches furthest and that the arm can move into without coming closer to the target than the arc does
+        (`q_start`, `start_changed`; `move_to_arc_start` moves there, the camera ending where it was). A motion
         no configuration completes raises MotionRejected (which joint, which limit, where, and the reachable
         part) unless `accept_reachable`, which plans the furthest reachable part instead.
         """
@@ -427,7 +432,7 @@ class Supervisor:
         check = check_path(path, s_end, st.limits, self.drivers.kin, q_now, margin=st.step)
         q_start, changed = q_now, False
         if not check.ok:
-            found = self._other_arc_start(path, s_end, q_now, check.reachable)
+            found = self._other_arc_start(path, s_end, q_now, check.reachable, np.asarray(pivot_base, float))
             if found is not None:
                 (q_start, other), changed = found, True
                 self.events.emit(self.drivers.clock.now(), "arc_start_changed",
@@ -452,11 +457,13 @@ class Supervisor:
             s_end = check.reachable
         return ArcPlan(path, float(azimuth), float(s_end), check, q_start, changed)
 
-    def _other_arc_start(self, path: ArcPath, s_end: float, q_now: np.ndarray,
-                         reached: float) -> tuple[np.ndarray, PathCheck] | None:
-        """(joints, check) of the configuration of the arc's start pose that reaches further than `reached`
-        (the furthest; among those completing the arc, the nearest to `q_now` by the largest joint change),
-        or None. Setup-pose IK (SETUP_MARGIN inside the limits) from ARC_START_SEEDS fixed seeds."""
+    def _other_arc_start(self, path: ArcPath, s_end: float, q_now: np.ndarray, reached: float,
+                         pivot: np.ndarray) -> tuple[np.ndarray, PathCheck] | None:
+        """(joints, check) of another configuration of the arc's start pose from which the arc reaches further
+        than `reached`, or None. The furthest wins; among equals, the nearest to `q_now` (largest joint change).
+        Only a configuration the arm can move into safely counts: the straight joint-space move there brings no
+        point of the arm (`kin.body_points`) closer to `pivot` (the target) than the arc itself does. Candidates:
+        setup-pose IK (SETUP_MARGIN inside the limits) from ARC_START_SEEDS fixed seeds."""
         st, kin = self._stage, self.drivers.kin
         setup_kin = self._setup_kinematics()
         rng = np.random.default_rng(0)
@@ -474,8 +481,12 @@ class Supervisor:
         for q, coarse_reach in found:
             if coarse_reach <= reached + 1e-9:
                 break
-            fine = check_path(path, s_end, st.limits, kin, q, margin=st.step)  # the follower's resolution
-            if fine.reachable > reached + 1e-9:
+            fine = check_path(path, s_end, st.limits, kin, q, margin=st.step, clearance_to=pivot)  # the follower's
+            if fine.reachable <= reached + 1e-9 or fine.clearance is None:
+                continue
+            move = min(float(np.min(np.linalg.norm(kin.body_points(qm) - pivot, axis=1)))
+                       for qm in joint_line(q_now, q))
+            if move >= fine.clearance - ARC_START_CLEARANCE_TOL:
                 return q, fine
         return None
 
@@ -489,7 +500,7 @@ class Supervisor:
             return
         self.events.emit(self.drivers.clock.now(), "arc_start_move",
                          largest_joint_change_deg=math.degrees(float(np.max(np.abs(plan.q_start - q_now)))))
-        self.move_joints_to(plan.q_start)
+        self.move_joints_to(plan.q_start, straight=True)
 
     def run(self, plan: ArcPlan, *, max_time: float = 600.0, heartbeat=None, on_brake=None,
             observer=None) -> RunRecord:
