@@ -376,7 +376,8 @@ class Daemon:
             self.sup.move_to_arc_start(plan)
         self._next_plan = plan
         self._pending_run = True
-        return {"ok": True, "state": "moving", "theta_end_deg": math.degrees(plan.s_end)}
+        return {"ok": True, "state": "moving", "theta_end_deg": math.degrees(plan.s_end),
+                "start_changed": plan.start_changed}
 
     # -- the main thread -------------------------------------------------------------------------
     def request_shutdown(self, why: str) -> None:
