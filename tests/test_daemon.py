@@ -90,6 +90,28 @@ def test_build_arm_run_wait_halts_within_the_allowance_and_stage_is_refused_whil
 
 
 @pytest.mark.slow
+def test_an_arc_only_another_configuration_completes_starts_there(daemon):
+    """phantom at azimuth 120: from the configuration the model view was reached in, IK stalls 3.6 deg along
+    the arc (a singularity); from another configuration of the same view the arc is feasible."""
+    if daemon.status()["model"] is None:
+        assert daemon.ctl("model", "build")[0] == 0
+    assert daemon.ctl("stage", "explore")[0] == 0
+    st = daemon.status()["state"]
+    assert daemon.ctl("rearm" if st == "halted" else "arm")[0] == 0
+    rc, reply = daemon.ctl("run", "--azimuth", "120", "--sweep", "6")
+    assert rc == 0 and reply["start_changed"] is True and reply["theta_end_deg"] == pytest.approx(6.0), reply
+    rc, done = daemon.ctl("wait", "--timeout", "120")
+    assert rc == 0, done
+    s = done["summary"]
+    assert s["max_overshoot_deg"] <= 1e-6
+    if not s["halt_reason"].startswith("fault:"):  # a loaded machine may fault a run (latched, correct)
+        assert s["halt_reason"] in ("end_of_path", "boundary") and s["halt_angle_deg"] > 3.6, s
+    kinds = [e["kind"] for e in daemon.events()]
+    changed = len(kinds) - 1 - kinds[::-1].index("arc_start_changed")
+    assert "arc_start_move" in kinds[changed:] and "run_ended" in kinds[changed:]
+
+
+@pytest.mark.slow
 def test_stop_mid_motion_brakes_at_once(daemon):
     if daemon.req({"cmd": "status"})["model"] is None:
         assert daemon.ctl("model", "build")[0] == 0

@@ -13,12 +13,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
+from ruckig import InputParameter, Result, Ruckig, Trajectory
 
 from supervisor.errors import JointLimitError, RobotFault
 
 TOL = 1e-9  # absolute slack on position (rad) and velocity (rad/s) checks
 REL_V = 1e-9  # relative slack on the velocity limit
+REST_VELOCITY = 0.01  # rad/s per joint: a straight move's start counts as rest below this
 
 
 def sample_ruckig(inp: InputParameter, dt: float, what: str) -> np.ndarray:
@@ -47,15 +48,13 @@ def check_joint_plan(kin, q0: np.ndarray, plan: np.ndarray, dt: float) -> None:
                               f"velocity at plan tick {k + 1}")
 
 
-STRAIGHT_TOL = 1e-6  # rad: how far a straight move's planned ticks may lie off the joint-space line
-
-
 def plan_joint_move(kin, q0: np.ndarray, dq0: np.ndarray, q_goal: np.ndarray, dt: float,
                     limits_scale: float = 0.5, straight: bool = False) -> np.ndarray:
     """Checked Ruckig plan from (q0, dq0) to rest at `q_goal`: (N, 7) positions, the last equal to `q_goal`.
 
-    `straight` (from rest): phase-synchronized, every tick on the joint-space line from q0 to q_goal, so that a
-    check of that line (e.g. its clearance) holds for the move; a plan off the line raises RobotFault."""
+    `straight` (from rest, `dq0` ignored): every tick on the joint-space line from q0 to q_goal, so that a check
+    of that line (e.g. its clearance) holds for the move: Ruckig plans the line's parameter from 0 to 1 within
+    the tightest of the joints' limits divided by their share of the move."""
     if not 0 < limits_scale <= 1:
         raise ValueError(f"limits_scale must be in (0, 1], got {limits_scale}")
     q_goal = np.asarray(q_goal, dtype=float)
@@ -66,6 +65,8 @@ def plan_joint_move(kin, q0: np.ndarray, dq0: np.ndarray, q_goal: np.ndarray, dt
     if np.any(low | high):
         j = int(np.argmax(low | high))
         raise JointLimitError(j, float(q_goal[j]), float(kin.q_min[j] if low[j] else kin.q_max[j]), "goal position")
+    if straight:
+        return _plan_straight(kin, np.asarray(q0, float), q_goal, dt, limits_scale)
     inp = InputParameter(n)
     inp.current_position = np.asarray(q0, float).tolist()
     inp.current_velocity = np.asarray(dq0, float).tolist()
@@ -76,25 +77,29 @@ def plan_joint_move(kin, q0: np.ndarray, dq0: np.ndarray, q_goal: np.ndarray, dt
     inp.max_velocity = (kin.dq_max * limits_scale).tolist()
     inp.max_acceleration = (kin.ddq_max * limits_scale).tolist()
     inp.max_jerk = (kin.dddq_max * limits_scale).tolist()
-    if straight:
-        inp.synchronization = Synchronization.Phase
     plan = sample_ruckig(inp, dt, "joint motion")
     plan[-1] = q_goal
-    if straight:
-        _check_straight(np.asarray(q0, float), q_goal, plan)
     check_joint_plan(kin, np.asarray(q0, float), plan, dt)
     return plan
 
 
-def _check_straight(q0: np.ndarray, q_goal: np.ndarray, plan: np.ndarray) -> None:
+def _plan_straight(kin, q0: np.ndarray, q_goal: np.ndarray, dt: float, limits_scale: float) -> np.ndarray:
     d = q_goal - q0
-    n2 = float(d @ d)
-    if n2 == 0.0:
-        return
-    lam = np.clip((plan - q0) @ d / n2, 0.0, 1.0)
-    off = float(np.max(np.abs(plan - (q0 + lam[:, None] * d))))
-    if off > STRAIGHT_TOL:
-        raise RobotFault(f"Ruckig could not plan the joint motion on a straight line ({off:.2e} rad off it)")
+    share = np.abs(d)
+    moving = share > 0
+    if not moving.any():
+        return q_goal[None, :].copy()
+    inp = InputParameter(1)  # the line's parameter, 0 -> 1, from rest to rest
+    inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [0.0], [0.0]
+    inp.target_position, inp.target_velocity, inp.target_acceleration = [1.0], [0.0], [0.0]
+    inp.max_velocity = [float(np.min(kin.dq_max[moving] / share[moving])) * limits_scale]
+    inp.max_acceleration = [float(np.min(kin.ddq_max[moving] / share[moving])) * limits_scale]
+    inp.max_jerk = [float(np.min(kin.dddq_max[moving] / share[moving])) * limits_scale]
+    lam = sample_ruckig(inp, dt, "straight joint motion")[:, 0]
+    plan = q0 + np.clip(lam, 0.0, 1.0)[:, None] * d
+    plan[-1] = q_goal
+    check_joint_plan(kin, q0, plan, dt)
+    return plan
 
 
 def joint_line(q0: np.ndarray, q_goal: np.ndarray, step: float = math.radians(0.5)) -> np.ndarray:
@@ -109,7 +114,13 @@ def move_joints(robot, kin, q_goal: np.ndarray, pacer, limits_scale: float = 0.5
     """Plan (and check) a move to rest at `q_goal` from the robot's state, then command it tick by tick
     (`straight`: on the joint-space line, see plan_joint_move)."""
     st = robot.state()
-    plan = plan_joint_move(kin, st.q, st.dq, q_goal, robot.control_period, limits_scale, straight)
+    dq0 = st.dq
+    if straight:  # a line in joint space starts from rest: a reported velocity at rest is noise, not motion
+        if np.max(np.abs(st.dq)) > REST_VELOCITY:
+            raise RobotFault(f"a straight joint move starts from rest; the arm moves at up to "
+                             f"{np.max(np.abs(st.dq)):.4f} rad/s")
+        dq0 = np.zeros_like(st.dq)
+    plan = plan_joint_move(kin, st.q, dq0, q_goal, robot.control_period, limits_scale, straight)
     pacer.start()
     for q in plan:
         robot.command(q)
