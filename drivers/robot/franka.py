@@ -67,6 +67,9 @@ SETTLE_TOLERANCE = 0.5e-3  # rad per joint: where a setup move ends (the arc's s
 SETTLE_WINDOW = 0.05
 SETTLE_SPEED = 0.05  # rad/s: the settle's largest correction speed
 SETTLE_TIMEOUT = 3.0  # s
+# s: how long connecting may take (libfranka's handshake has no timeout of its own: a controller that accepts
+# the connection and never answers would block the caller, e.g. the daemon's start, forever)
+CONNECT_TIMEOUT = 30.0
 # SCHED_FIFO priority of franky's control-loop thread (the 1 kHz exchange with the controller): above the
 # supervisor's tick thread (20) and render/simulator processes; libfranka itself would take 99.
 CONTROL_PRIORITY = 80
@@ -150,6 +153,7 @@ class FrankaRobot(Robot):
         deadman: float = 0.05,
         max_tracking_error: float = 0.05,
         link_timeout: float = 0.2,
+        connect_timeout: float = CONNECT_TIMEOUT,
         relative_dynamics_factor: float = 1.0,
         realtime: bool | None = None,
         idle_hold: bool = True,
@@ -160,6 +164,7 @@ class FrankaRobot(Robot):
             raise ValueError(f"command_mode must be one of {COMMAND_MODES}, got {command_mode!r}")
         for name, value in (("control_period", control_period), ("send_period", send_period),
                             ("deadman", deadman), ("link_timeout", link_timeout),
+                            ("connect_timeout", connect_timeout),
                             ("max_tracking_error", max_tracking_error)):
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be a positive number of seconds/radians, got {value}")
@@ -179,6 +184,7 @@ class FrankaRobot(Robot):
         self.deadman = float(deadman)
         self.max_tracking_error = float(max_tracking_error)
         self.link_timeout = float(link_timeout)
+        self.connect_timeout = float(connect_timeout)
         self.relative_dynamics_factor = float(relative_dynamics_factor)
         self.realtime = realtime_kernel() if realtime is None else bool(realtime)
         self.idle_hold = bool(idle_hold) and command_mode == "velocity"
@@ -201,9 +207,7 @@ class FrankaRobot(Robot):
         rt = franky.RealtimeConfig.Enforce if self.realtime else franky.RealtimeConfig.Ignore
         with self._io:
             try:
-                with _thread_scheduling(None):  # libfranka puts its caller on SCHED_FIFO 99: undone on return
-                    robot = franky.Robot(self.host, relative_dynamics_factor=self.relative_dynamics_factor,
-                                         realtime_config=rt)
+                robot = self._open(rt)
                 robot.recover_from_errors()
                 # franky plans its motions (and its stop) within these; franky-control 2.0 defaults to the
                 # Panda's table on any arm, so an FR3 gets its own, lower, acceleration and jerk limits.
@@ -230,6 +234,28 @@ class FrankaRobot(Robot):
                 raise
             except Exception as exc:  # noqa: BLE001
                 raise self._fail(exc, "holding the arm after connecting") from exc
+
+    def _open(self, rt) -> franky.Robot:
+        """franky.Robot(host) within `connect_timeout`: the constructor runs on a thread of its own, which is
+        abandoned (a daemon thread) if the controller never answers; TimeoutError then."""
+        done: dict[str, object] = {}
+
+        def connect() -> None:
+            try:
+                with _thread_scheduling(None):  # libfranka puts its caller on SCHED_FIFO 99: undone on return
+                    done["robot"] = franky.Robot(self.host, relative_dynamics_factor=self.relative_dynamics_factor,
+                                                 realtime_config=rt)
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller below
+                done["error"] = exc
+
+        t = threading.Thread(target=connect, name=f"franky connect {self.host}", daemon=True)
+        t.start()
+        t.join(self.connect_timeout)
+        if t.is_alive():  # translated by _connect, as every vendor error there
+            raise TimeoutError(f"no answer within {self.connect_timeout:g} s")
+        if "error" in done:
+            raise done["error"]  # type: ignore[misc]
+        return done["robot"]  # type: ignore[return-value]
 
     def _reset_stream(self) -> None:
         self._last_cmd: np.ndarray | None = None
