@@ -372,8 +372,7 @@ class Daemon:
             self.sup.move_camera_to(self.sup.T_base_cam_model)
         plan = self.sup.plan_arc(pivot, math.radians(az), None if sweep is None else math.radians(sweep))
         if plan.start_changed:  # the arc completes only from another configuration of the start view
-            self._log("arc_start_move")
-            self.sup.move_to_arc_start(plan)
+            self.sup.move_to_arc_start(plan)  # logs `arc_start_move` in the daemon's event log
         self._next_plan = plan
         self._pending_run = True
         return {"ok": True, "state": "moving", "theta_end_deg": math.degrees(plan.s_end),

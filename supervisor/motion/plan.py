@@ -328,6 +328,12 @@ class PathFollower:
         return st.s, st.ds, st.dds, q
 
 
+def clearance(kin, qs, point: np.ndarray) -> float:
+    """The smallest distance (m) of the arm's body points (`kin.body_points`) to `point` over the configurations
+    `qs`: how close the arm comes to it (a target) along a motion."""
+    return min(float(np.min(np.linalg.norm(kin.body_points(q) - point, axis=1))) for q in qs)
+
+
 @dataclass(frozen=True)
 class PathCheck:
     """The whole motion checked before the first command.
@@ -391,7 +397,7 @@ def check_path(path: PathLike, s_end: float, limits: PathLimits, kin: Kinematics
                                      float(s), j)
             reached, q_ok, q_prev = float(s), q, q
             if clearance_to is not None:
-                near.append(float(np.min(np.linalg.norm(kin.body_points(q) - clearance_to, axis=1))))
+                near.append(clearance(kin, (q,), clearance_to))
     except MotionRejected as exc:
         return PathCheck(s0, s_end, max(s0, reached - margin) if q_ok is not None else s0, exc, q_ok,
                          min(near) if near else None)

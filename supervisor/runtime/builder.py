@@ -32,7 +32,7 @@ from supervisor.geometry import make_T
 from supervisor.localization.model import TargetModel, build_model
 from supervisor.motion.joint_move import joint_line, move_camera_to, move_joints
 from supervisor.motion.paths import ArcPath
-from supervisor.motion.plan import START_TOLERANCE, MotionRejected, PathCheck, PathFollower, check_path
+from supervisor.motion.plan import START_TOLERANCE, MotionRejected, PathCheck, PathFollower, check_path, clearance
 from supervisor.prediction import make_predictor
 from supervisor.prediction.models import LOCAL_SPAN
 from supervisor.runtime.capture import CaptureThread, InlineFrames
@@ -328,8 +328,7 @@ class Supervisor:
         with a point-to-point move of its own (franka: the controller's planner) makes it; otherwise the
         Ruckig joint plan is commanded tick by tick."""
         robot, kin = self.drivers.robot, self.drivers.kin
-        own = getattr(getattr(robot, "inner", robot), "move_to", None)
-        if own is None:
+        if not self._driver_moves_itself():
             move_camera_to(robot, kin, T_base_cam, self.pacer())
             return
         robot.move_to(self.setup_goal(T_base_cam, robot.state().q))
@@ -339,10 +338,15 @@ class Supervisor:
         (franka: the controller's joint-space planner), else the Ruckig joint plan tick by tick, on the
         joint-space line itself when `straight` (see plan_joint_move)."""
         robot = self.drivers.robot
-        if getattr(getattr(robot, "inner", robot), "move_to", None) is None:
+        if not self._driver_moves_itself():
             move_joints(robot, self.drivers.kin, np.asarray(q_goal, float), self.pacer(), straight=straight)
         else:
             robot.move_to(np.asarray(q_goal, float))
+
+    def _driver_moves_itself(self) -> bool:
+        """True when the robot driver has a point-to-point move of its own (`move_to`) for setup motions."""
+        robot = self.drivers.robot
+        return getattr(getattr(robot, "inner", robot), "move_to", None) is not None
 
     def setup_goal(self, T_base_cam: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
         """Joints for a setup pose (a model view, an arc's start): kept SETUP_MARGIN inside every joint limit
@@ -484,9 +488,7 @@ class Supervisor:
             fine = check_path(path, s_end, st.limits, kin, q, margin=st.step, clearance_to=pivot)  # the follower's
             if fine.reachable <= reached + 1e-9 or fine.clearance is None:
                 continue
-            move = min(float(np.min(np.linalg.norm(kin.body_points(qm) - pivot, axis=1)))
-                       for qm in joint_line(q_now, q))
-            if move >= fine.clearance - ARC_START_CLEARANCE_TOL:
+            if clearance(kin, joint_line(q_now, q), pivot) >= fine.clearance - ARC_START_CLEARANCE_TOL:
                 return q, fine
         return None
 
