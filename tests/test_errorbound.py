@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from supervisor.localization.uncertainty import pose_sd_at_point
-from supervisor.prediction.errorbound import ErrorTrend, crossing, log_margin, position_log_sd
+from supervisor.prediction.errorbound import ERR_SPAN, ErrorTrend, crossing, log_margin, position_log_sd
 from supervisor.prediction.models import fit_variant, last_positions
 from supervisor.prediction.predictors import ErrorAwarePredictor, NextStepPredictor
 
@@ -54,6 +54,30 @@ def test_error_trend_extrapolates_growth_never_improvement_and_infinite_when_los
     # crossing of kappa * sd with the tolerance: 1e-4 * 2^(x / 2.25 deg) = 2 mm at x = 2.25 log2(20) deg
     b = crossing([(rising, 0.002)], 1.0, x[-1], math.radians(45.0), z=0.0)
     assert math.degrees(b) == pytest.approx(2.25 * math.log2(20.0), rel=1e-4)
+
+
+def test_error_trend_window_by_angle_spans_what_the_replayed_positions_span():
+    """Continuous sampling updates every 1.5 deg; kappa was tuned on 2.25 deg positions, whose last four span
+    6.75 deg. By angle the window keeps that span (five 1.5 deg positions); on the recording's own step it
+    is exactly the last four positions."""
+    rec = np.radians(np.arange(0, 20.3, 2.25))
+    y = np.log(1e-4) + np.sin(rec * 40.0)  # no trend to speak of: the window decides the fit
+    by_pos, by_span = ErrorTrend.fit(rec, y), ErrorTrend.fit(rec, y, span=math.radians(ERR_SPAN))
+    assert by_span == by_pos and by_pos.n == 4
+    live = np.radians(np.arange(0, 21.1, 1.5))
+    t = ErrorTrend.fit(live, np.log(1e-4) + np.sin(live * 40.0), span=math.radians(ERR_SPAN))
+    assert t.n == 5 and math.degrees(t.sxx) > 0
+    assert math.degrees(live[-1] - live[-t.n]) == pytest.approx(6.0)
+    assert ErrorTrend.fit(live[:3], np.zeros(3), span=math.radians(ERR_SPAN)).n == 3  # what there is
+    wide = np.radians(np.arange(0, 40, 5.0))  # steps wider than the recording's: never fewer than the window
+    assert ErrorTrend.fit(wide, np.zeros(len(wide)), span=math.radians(ERR_SPAN)).n == 4
+    base = NextStepPredictor(15, math.radians(1.5), "logfit_lcb")
+    with pytest.raises(ValueError, match="span"):
+        ErrorAwarePredictor(base, 0.004, 0.1, 1.0, math.radians(1.5), span=0.0)
+    p = ErrorAwarePredictor(base, 0.004, 0.1, 1.0, math.radians(1.5), span=math.radians(ERR_SPAN))
+    for k, x in enumerate(live):
+        p.update(np.full(3, x), np.full(3, 200.0 - k), err=np.full(3, 1e-4 * 1.1 ** k))
+    assert all(tr.n == 5 for tr, _ in p.trends())
 
 
 def test_error_aware_predictor_stops_on_growing_uncertainty_while_n_i_is_still_high():

@@ -12,6 +12,7 @@ import pytest
 from loop_fakes import DEG, GeometricWorker, build_loop, n_of_theta, stage
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.motion.braking import PathLimits
+from supervisor.prediction.errorbound import ERR_SPAN
 from supervisor.prediction.predictors import ErrorAwarePredictor, NextStepPredictor
 from supervisor.runtime.builder import stage_predictor
 
@@ -56,6 +57,9 @@ def test_the_stage_keys_build_the_error_aware_predictor():
     p = stage_predictor(stage(**ERR_STAGE))
     assert isinstance(p, ErrorAwarePredictor) and isinstance(p.base, NextStepPredictor)
     assert (p.tol_t, p.tol_r, p.kappa) == (0.004, 10 * DEG, 2.0)
+    assert p.span is None  # stop-and-go: the last positions, as the replay
+    cont = stage_predictor(stage(**{**ERR_STAGE, "sampling": "continuous"}))
+    assert cont.span == pytest.approx(math.radians(ERR_SPAN))  # by angle: what the replay's positions span
     assert isinstance(stage_predictor(stage()), NextStepPredictor)  # no error_kappa: n_i only
 
 

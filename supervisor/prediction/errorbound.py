@@ -5,7 +5,10 @@ the pose's 1-sigma spread at the target (localization/uncertainty.py: translatio
 rotation sd_r in rad, from the inliers' residuals and geometry). It grows as inliers are lost
 *and* as the view's conditioning worsens, which n_i cannot see. Its logarithm is modelled against
 the viewing angle as n_i is: a straight line through the last `ERR_WINDOW` positions (the observed
-local growth rate, never a falling one), with a one-sided `Z_ERR` prediction bound. The boundary is
+local growth rate, never a falling one), with a one-sided `Z_ERR` prediction bound. With continuous
+sampling a position is one theta_b of progress, shorter than the recording's step that kappa was tuned
+at, so the window is an angle instead (`span`): the positions within ERR_SPAN of the furthest one, what
+ERR_WINDOW positions span at the recording's step (as the local n_i variants' LOCAL_SPAN). The boundary is
 where kappa * sd's upper bound reaches the tolerance; kappa (how many sigmas of spread the
 tolerance must allow: bias included) is the operating point, chosen by cross-validation like n_t.
 
@@ -20,9 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from supervisor.prediction.models import first_crossing
+from supervisor.prediction.models import RECORDING_STEP_DEG, first_crossing
 
 ERR_WINDOW = 4  # positions
+ERR_SPAN = (ERR_WINDOW - 1) * RECORDING_STEP_DEG  # deg: that window as an angle at the recording's step
 Z_ERR = 1.645  # one-sided 95%
 KAPPAS = (0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0, 5.6, 8.0, 11.0, 16.0, 22.0, 32.0)  # the operating points swept
 
@@ -37,7 +41,8 @@ def position_log_sd(sd: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class ErrorTrend:
-    """log sd(x) ~ a + b (x - xm), b >= 0, on the last ERR_WINDOW positions; `upper(x)` its one-sided bound."""
+    """log sd(x) ~ a + b (x - xm), b >= 0, on the last ERR_WINDOW positions (or, with `span`, the positions
+    within `span` of the furthest one, never fewer than `window`); `upper(x)` its one-sided bound."""
 
     a: float
     b: float
@@ -48,11 +53,15 @@ class ErrorTrend:
     last: float  # log sd observed at the furthest position
 
     @classmethod
-    def fit(cls, x: np.ndarray, y: np.ndarray, window: int = ERR_WINDOW) -> ErrorTrend:
-        x = np.asarray(x, float)[-window:]
-        y = np.asarray(y, float)[-window:]
+    def fit(cls, x: np.ndarray, y: np.ndarray, window: int = ERR_WINDOW, span: float | None = None) -> ErrorTrend:
+        """`x` in increasing order of sampling (SI); `span` (SI) windows by angle, see the module docstring."""
+        x, y = np.asarray(x, float), np.asarray(y, float)
         if len(x) == 0:
             raise ValueError("no positions")
+        keep = window
+        if span is not None:  # a relative slack: positions exactly span apart (2.25 deg multiples) stay in
+            keep = max(window, int(np.count_nonzero(x >= x[-1] - span * (1.0 + 1e-6))))
+        x, y = x[-keep:], y[-keep:]
         if not np.all(np.isfinite(y)):
             return cls(math.inf, 0.0, float(x[-1]), 0.0, len(x), 0.0, math.inf)
         xm = float(np.mean(x))

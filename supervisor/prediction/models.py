@@ -76,7 +76,8 @@ DROP_BASES = ("lcb", "logfit_lcb", "fw_lcb")  # variants offered with the drop d
 VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb", "fw", "fw_lcb", "local", "local_lcb",
             *(f"{v}_drop" for v in DROP_BASES))
 LOCAL_POSITIONS = 4  # sampling positions in the window of the local-rate variants
-LOCAL_SPAN = (LOCAL_POSITIONS - 1) * 2.25  # deg: that window as an angle at the recording's step (continuous sampling)
+RECORDING_STEP_DEG = 2.25  # deg: the benchmark suite's arc step (dataset.arc.step_deg's default), what tuning replays
+LOCAL_SPAN = (LOCAL_POSITIONS - 1) * RECORDING_STEP_DEG  # deg: that window as an angle (continuous sampling)
 _GRID = 121  # scan points for the first crossing of a confidence band
 GUARD_TOL = 0.1  # fit units (deg, mm): frames this close to the furthest one count as "here" (pose jitter)
 

@@ -150,17 +150,21 @@ class ErrorAwarePredictor:
     (sd_t m, sd_r rad) (LocalizationResult.sd_t / sd_r; nan for frames that did not localize). The
     boundary is the earlier of the base's and where kappa * the modelled sd's upper bound reaches
     the tolerance (tol_t, and tol_r when sd_r is given). An update without `err` is "no valid
-    model": the bound cannot be checked, so no new motion.
+    model": the bound cannot be checked, so no new motion. `span` (SI): the trend's window as an angle
+    (continuous sampling; errorbound.ERR_SPAN), else the last `window` positions.
     """
 
     kind = "error_aware"
     needs_err = True  # the loop passes the step's per-frame (sd_t, sd_r)
 
     def __init__(self, base, tol_t: float, tol_r: float, kappa: float, step: float,
-                 x_max: float = math.radians(45.0), window: int = ERR_WINDOW, z: float = Z_ERR) -> None:
-        for name, v in (("tol_t", tol_t), ("tol_r", tol_r), ("kappa", kappa), ("step", step)):
+                 x_max: float = math.radians(45.0), window: int = ERR_WINDOW, z: float = Z_ERR,
+                 span: float | None = None) -> None:
+        for name, v in (("tol_t", tol_t), ("tol_r", tol_r), ("kappa", kappa), ("step", step),
+                        ("span", 1.0 if span is None else span)):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number, got {v}")
+        self.span = None if span is None else float(span)
         self.base, self.tol_t, self.tol_r, self.kappa = base, float(tol_t), float(tol_r), float(kappa)
         self.step, self.x_max, self.window, self.z = float(step), float(x_max), int(window), float(z)
         self.reset()
@@ -206,9 +210,9 @@ class ErrorAwarePredictor:
     def trends(self) -> list[tuple[ErrorTrend, float]]:
         """The fitted uncertainty trends with their tolerances (rotation only when it was given)."""
         x = np.array(self._x)
-        out = [(ErrorTrend.fit(x, np.array(self._yt), self.window), self.tol_t)]
+        out = [(ErrorTrend.fit(x, np.array(self._yt), self.window, self.span), self.tol_t)]
         if not all(math.isnan(v) for v in self._yr):
-            out.append((ErrorTrend.fit(x, np.array(self._yr), self.window), self.tol_r))
+            out.append((ErrorTrend.fit(x, np.array(self._yr), self.window, self.span), self.tol_r))
         return out
 
 
@@ -218,16 +222,17 @@ PREDICTORS = ("next_step", "long_range", "static", "mlp")
 def make_predictor(kind: str, variant: str, n_t: float, step: float, *, axis: Axis = ANGLE,
                    hard_limit: float = math.radians(45.0), static_limit: float | None = None, seed: int = 0,
                    error_kappa: float | None = None, tolerance_t: float | None = None,
-                   tolerance_r: float | None = None, local_span: float | None = None):
+                   tolerance_r: float | None = None, local_span: float | None = None,
+                   error_span: float | None = None):
     """The predictor a stage names (`predictor`, `variant`, `n_t`, `step`), wrapped in the error-aware
-    boundary when the stage sets `error_kappa` (with its tolerance, SI). `local_span` (SI): the local
-    variants' window as an angle (continuous sampling)."""
+    boundary when the stage sets `error_kappa` (with its tolerance, SI). `local_span`, `error_span` (SI):
+    the local variants' and the error trend's windows as angles (continuous sampling)."""
     if error_kappa is not None:
         if tolerance_t is None or tolerance_r is None:
             raise ValueError("the error-aware boundary needs the stage's tolerance (tolerance_t, tolerance_r)")
         base = make_predictor(kind, variant, n_t, step, axis=axis, hard_limit=hard_limit,
                               static_limit=static_limit, seed=seed, local_span=local_span)
-        return ErrorAwarePredictor(base, tolerance_t, tolerance_r, error_kappa, step, hard_limit)
+        return ErrorAwarePredictor(base, tolerance_t, tolerance_r, error_kappa, step, hard_limit, span=error_span)
     if kind == "next_step":
         return NextStepPredictor(n_t, step, variant, axis, hard_limit, local_span)
     if kind == "long_range":

@@ -34,6 +34,7 @@ from supervisor.motion.joint_move import joint_line, move_camera_to, move_joints
 from supervisor.motion.paths import ArcPath
 from supervisor.motion.plan import START_TOLERANCE, MotionRejected, PathCheck, PathFollower, check_path, clearance
 from supervisor.prediction import make_predictor
+from supervisor.prediction.errorbound import ERR_SPAN
 from supervisor.prediction.models import LOCAL_SPAN
 from supervisor.runtime.capture import CaptureThread, InlineFrames
 from supervisor.runtime.events import EventLog
@@ -259,11 +260,13 @@ def _problem_text(check: PathCheck) -> str:
 
 def stage_predictor(st: StageConfig):
     """The predictor a stage names, with the error-aware boundary when the stage sets `error_kappa`.
-    Continuous sampling reads the local variants' rate over an angle (LOCAL_SPAN), not over positions."""
-    span = math.radians(LOCAL_SPAN) if st.sampling == "continuous" else None
+    Continuous sampling reads the local variants' rate and the error trend over an angle (LOCAL_SPAN,
+    ERR_SPAN: what the tuning replay's positions span), not over positions."""
+    cont = st.sampling == "continuous"
     return make_predictor(st.predictor, st.variant, st.n_t, st.step, hard_limit=st.hard_limit,
                           error_kappa=st.error_kappa, tolerance_t=st.tolerance_t, tolerance_r=st.tolerance_r,
-                          local_span=span)
+                          local_span=math.radians(LOCAL_SPAN) if cont else None,
+                          error_span=math.radians(ERR_SPAN) if cont else None)
 
 
 class Supervisor:
