@@ -13,6 +13,7 @@ from loop_fakes import DEG, GeometricWorker, build_loop, n_of_theta, stage
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.motion.braking import PathLimits
 from supervisor.prediction.errorbound import ERR_SPAN
+from supervisor.prediction.models import LOCAL_SPAN
 from supervisor.prediction.predictors import ErrorAwarePredictor, NextStepPredictor
 from supervisor.runtime.builder import stage_predictor
 
@@ -57,9 +58,11 @@ def test_the_stage_keys_build_the_error_aware_predictor():
     p = stage_predictor(stage(**ERR_STAGE))
     assert isinstance(p, ErrorAwarePredictor) and isinstance(p.base, NextStepPredictor)
     assert (p.tol_t, p.tol_r, p.kappa) == (0.004, 10 * DEG, 2.0)
-    assert p.span is None  # stop-and-go: the last positions, as the replay
-    cont = stage_predictor(stage(**{**ERR_STAGE, "sampling": "continuous"}))
-    assert cont.span == pytest.approx(math.radians(ERR_SPAN))  # by angle: what the replay's positions span
+    # by angle, whatever the sampling: what the replay's 4 positions at the recording's 2.25 deg step span
+    for sampling in ("stop_and_go", "continuous"):
+        p = stage_predictor(stage(**{**ERR_STAGE, "sampling": sampling}))
+        assert p.span == pytest.approx(math.radians(ERR_SPAN))
+        assert p.base.local_span == pytest.approx(LOCAL_SPAN)  # fit units (deg)
     assert isinstance(stage_predictor(stage()), NextStepPredictor)  # no error_kappa: n_i only
 
 

@@ -156,7 +156,8 @@ def test_local_rate_over_an_angle_reads_continuous_frames_like_the_recorded_posi
         fit_variant("local_lcb", x, n, local_span=0.0)
 
 
-def test_continuous_stages_build_their_local_rate_over_the_recordings_span():
+def test_every_stage_builds_its_local_rate_over_the_recordings_span():
+    """Stop-and-go too: explore's 1.5 deg steps (cut's 1 deg) would read 4.5 deg (3 deg) as 4 positions."""
     from supervisor.config import load_config
     from supervisor.prediction.models import LOCAL_SPAN
     from supervisor.runtime.builder import stage_predictor
@@ -166,4 +167,4 @@ def test_continuous_stages_build_their_local_rate_over_the_recordings_span():
         p = stage_predictor(st)
         base = getattr(p, "base", p)
         if hasattr(base, "local_span"):
-            assert base.local_span == (pytest.approx(LOCAL_SPAN) if st.sampling == "continuous" else None), name
+            assert base.local_span == pytest.approx(LOCAL_SPAN), name

@@ -5,8 +5,8 @@ the pose's 1-sigma spread at the target (localization/uncertainty.py: translatio
 rotation sd_r in rad, from the inliers' residuals and geometry). It grows as inliers are lost
 *and* as the view's conditioning worsens, which n_i cannot see. Its logarithm is modelled against
 the viewing angle as n_i is: a straight line through the last `ERR_WINDOW` positions (the observed
-local growth rate, never a falling one), with a one-sided `Z_ERR` prediction bound. With continuous
-sampling a position is one theta_b of progress, shorter than the recording's step that kappa was tuned
+local growth rate, never a falling one), with a one-sided `Z_ERR` prediction bound. In the live loop
+a position is one stage step (1.5 deg, 1 deg), shorter than the recording's step that kappa was tuned
 at, so the window is an angle instead (`span`): the positions within ERR_SPAN of the furthest one, what
 ERR_WINDOW positions span at the recording's step (as the local n_i variants' LOCAL_SPAN). The boundary is
 where kappa * sd's upper bound reaches the tolerance; kappa (how many sigmas of spread the

@@ -38,9 +38,10 @@ fit. Variants (selectable by name per stage):
   refitted on a sliding window), read like the tail fallback. A log-concave decay (a plateau,
   then a cliff whose e-fold length keeps shrinking) is predicted late by any one curve fitted to
   the whole history; the recent slope is the steepest seen so far, and the next-step rule only
-  needs it one step ahead. With continuous sampling every frame is taken at its own angle, so the
-  window is an angle instead (`local_span`, fit units): the samples within LOCAL_SPAN of the furthest
-  one, what LOCAL_POSITIONS positions of the recording's 2.25 deg step span (what tuning replays).
+  needs it one step ahead. The live loop reads an angle instead (`local_span`, fit units): the
+  samples within LOCAL_SPAN of the furthest one, what LOCAL_POSITIONS positions of the recording's
+  2.25 deg step span (what tuning replays). With continuous sampling every frame has its own angle;
+  stop-and-go stages step 1.5 deg (or 1 deg), whose last 4 positions span less than the tuned window.
 
 All but ``paper`` share two more rules. **The observation guard**: if the frames
 at the furthest position already average <= n_t, theta_p = x_now whatever the
@@ -77,7 +78,7 @@ VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb", "fw", "fw_lcb", "local", "lo
             *(f"{v}_drop" for v in DROP_BASES))
 LOCAL_POSITIONS = 4  # sampling positions in the window of the local-rate variants
 RECORDING_STEP_DEG = 2.25  # deg: the benchmark suite's arc step (dataset.arc.step_deg's default), what tuning replays
-LOCAL_SPAN = (LOCAL_POSITIONS - 1) * RECORDING_STEP_DEG  # deg: that window as an angle (continuous sampling)
+LOCAL_SPAN = (LOCAL_POSITIONS - 1) * RECORDING_STEP_DEG  # deg: that window as an angle (the live loop)
 _GRID = 121  # scan points for the first crossing of a confidence band
 GUARD_TOL = 0.1  # fit units (deg, mm): frames this close to the furthest one count as "here" (pose jitter)
 
@@ -289,8 +290,9 @@ def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bo
     off (ablations; ``paper`` uses neither). `time_budget_s` caps each fit (live loop); offline
     evaluation should pass math.inf so that its results cannot depend on machine load.
     `local_span` (fit units): the local variants' window as an angle (samples within it of the furthest
-    one) instead of the last LOCAL_POSITIONS positions — continuous sampling, where every frame has its
-    own angle and four "positions" would be four frames a fraction of a degree apart.
+    one) instead of the last LOCAL_POSITIONS positions — the live loop: with continuous sampling four
+    "positions" would be four frames a fraction of a degree apart, and stop-and-go steps are shorter
+    than the recording's.
     """
     if variant not in VARIANTS:
         raise ValueError(f"unknown model variant {variant!r}; expected one of {VARIANTS}")

@@ -46,7 +46,7 @@ class _FittingPredictor:
     def __init__(self, n_t: float, step: float, variant: str = "paper", axis: Axis = ANGLE,
                  x_max: float = math.radians(45.0), local_span: float | None = None) -> None:
         """`local_span` (SI): the local variants' window as an angle or a distance instead of the last
-        positions (continuous sampling; models.fit_variant)."""
+        positions (the live loop; models.fit_variant)."""
         if not (math.isfinite(n_t) and n_t > 0):
             raise ValueError(f"n_t must be a positive number, got {n_t}")
         if not (math.isfinite(step) and step > 0):
@@ -151,7 +151,7 @@ class ErrorAwarePredictor:
     boundary is the earlier of the base's and where kappa * the modelled sd's upper bound reaches
     the tolerance (tol_t, and tol_r when sd_r is given). An update without `err` is "no valid
     model": the bound cannot be checked, so no new motion. `span` (SI): the trend's window as an angle
-    (continuous sampling; errorbound.ERR_SPAN), else the last `window` positions.
+    (the live loop; errorbound.ERR_SPAN), else the last `window` positions (the replay).
     """
 
     kind = "error_aware"
@@ -226,7 +226,7 @@ def make_predictor(kind: str, variant: str, n_t: float, step: float, *, axis: Ax
                    error_span: float | None = None):
     """The predictor a stage names (`predictor`, `variant`, `n_t`, `step`), wrapped in the error-aware
     boundary when the stage sets `error_kappa` (with its tolerance, SI). `local_span`, `error_span` (SI):
-    the local variants' and the error trend's windows as angles (continuous sampling)."""
+    the local variants' and the error trend's windows as angles (the live loop)."""
     if error_kappa is not None:
         if tolerance_t is None or tolerance_r is None:
             raise ValueError("the error-aware boundary needs the stage's tolerance (tolerance_t, tolerance_r)")

@@ -260,13 +260,12 @@ def _problem_text(check: PathCheck) -> str:
 
 def stage_predictor(st: StageConfig):
     """The predictor a stage names, with the error-aware boundary when the stage sets `error_kappa`.
-    Continuous sampling reads the local variants' rate and the error trend over an angle (LOCAL_SPAN,
-    ERR_SPAN: what the tuning replay's positions span), not over positions."""
-    cont = st.sampling == "continuous"
+    The local variants' rate and the error trend are read over an angle (LOCAL_SPAN, ERR_SPAN: what the
+    tuning replay's 4 positions at the recording's 2.25 deg step span), whatever the stage's own step: a
+    stage's 1.5 deg (or 1 deg) steps would otherwise read 4.5 deg (3 deg), not what its point was tuned on."""
     return make_predictor(st.predictor, st.variant, st.n_t, st.step, hard_limit=st.hard_limit,
                           error_kappa=st.error_kappa, tolerance_t=st.tolerance_t, tolerance_r=st.tolerance_r,
-                          local_span=math.radians(LOCAL_SPAN) if cont else None,
-                          error_span=math.radians(ERR_SPAN) if cont else None)
+                          local_span=math.radians(LOCAL_SPAN), error_span=math.radians(ERR_SPAN))
 
 
 class Supervisor:
