@@ -35,7 +35,9 @@ GATE_HALTS = ("boundary", "hard_limit", "consistency", "no_model", "end_of_path"
 # explore with a 100 ms robot-state gap, for the gated-arc test: with the shipped 20 ms, franky-sim's state
 # stream on a loaded 2-core CI machine paused 23-24 ms in three attempts in a row (a correct latched
 # state_gap halt, but not the gate this test is about). The kill test keeps the shipped 20 ms.
+# 3 deg steps of 3 frames: the gate is the same rule; explore's 1.5 deg steps of 5 frames took 60 s of the suite.
 GATE_STAGE = "explore_gap100"
+GATE_KEYS = {"pose_gap_ms": 100, "step_deg": 3.0, "frames_per_step": 3}
 
 
 def franka_config(tmp: Path, host: str, frame_rate_hz: int) -> Path:
@@ -55,7 +57,7 @@ def franka_config(tmp: Path, host: str, frame_rate_hz: int) -> Path:
         assert old in text, old
         text = text.replace(old, new, count)
     doc = yaml.safe_load(text)
-    doc["stages"][GATE_STAGE] = {**doc["stages"]["explore"], "pose_gap_ms": 100}
+    doc["stages"][GATE_STAGE] = {**doc["stages"]["explore"], **GATE_KEYS}
     path = tmp / "franka-sim.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
