@@ -89,7 +89,7 @@ def plot_trials(rows: list[dict], path: Path) -> Path:
     for ax, mode in zip(axes[:, 0], modes):
         rs = [r for r in rows if r["sampling"] == mode]
         x = np.arange(len(rs))
-        actual = np.array([r["actual_boundary_deg"]["4mm_10deg"] for r in rs])
+        actual = np.array([r["actual_boundary_judged_deg"] for r in rs])
         halt = np.array([r["halt_angle_deg"] for r in rs])
         inc = np.array([bool(r["incursion"]) for r in rs])
         ax.bar(x, actual, color="0.85", label="actual boundary (4 mm / 10 deg)")
@@ -136,7 +136,7 @@ def main() -> int:
         for k, s in enumerate(pool.map(_trial, trials), 1):
             rows.append(s)
             print(f"  [{k}/{len(trials)}] {s['scene']} az {s['azimuth_deg']:g} {s['sampling']}: halt "
-                  f"{s['halt_angle_deg']:.2f} deg, actual {s['actual_boundary_deg']['4mm_10deg']:.2f}, "
+                  f"{s['halt_angle_deg']:.2f} deg, actual {s['actual_boundary_judged_deg']:.2f} ({s['judged_tolerance']}), "
                   f"{'INCURSION' if s['incursion'] else 'ok'}", file=sys.stderr, flush=True)
     print(f"{'scene':<18} {'az':>4} {'mode':<12} {'halt':>6} {'theta_p':>7} {'allowed':>7} {'actual':>7} "
           f"{'incur':>5} {'overshoot':>9} {'revision':>8} {'usage':>6}  reason")
@@ -146,7 +146,7 @@ def main() -> int:
     for s in rows:
         print(f"{s['scene']:<18} {s['azimuth_deg']:>4.0f} {s['sampling']:<12} {s['halt_angle_deg']:>6.2f} "
               f"{cell(s['predicted_boundary_deg'], '.2f'):>7} {cell(s['theta_allowed_at_brake_deg'], '.2f'):>7} "
-              f"{s['actual_boundary_deg']['4mm_10deg']:>7.2f} {'YES' if s['incursion'] else 'no':>5} "
+              f"{s['actual_boundary_judged_deg']:>7.2f} {'YES' if s['incursion'] else 'no':>5} "
               f"{cell(s['max_overshoot_deg'], '+.4f'):>9} {s['revision_shortfall_deg']:>8.3f} "
               f"{100 * s['envelope_usage']:>5.0f}%  {s['halt_reason']}")
     n = len(rows)

@@ -228,7 +228,8 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
     if "actual_boundary_deg" in s:
         ab = s["actual_boundary_deg"]
         print(f"  actual boundary (ground truth): {ab['4mm_10deg']:.2f} deg at 4 mm/10 deg, "
-              f"{ab['2mm_3deg']:.2f} deg at 2 mm/3 deg; incursion: {'YES' if s['incursion'] else 'no'}; "
+              f"{ab['2mm_3deg']:.2f} deg at 2 mm/3 deg; at the stage's {s['judged_tolerance']} "
+              f"{s['actual_boundary_judged_deg']:.2f} deg: incursion: {'YES' if s['incursion'] else 'no'}; "
               f"envelope usage {100 * s['envelope_usage']:.0f}%")
     print(f"wrote {out / 'summary.json'}, {out / 'events.jsonl'}, {out / 'timeline.png'}")
     return 0

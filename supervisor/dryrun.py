@@ -239,15 +239,31 @@ def run_replay(cfg: Config, dataset: str | Path, stage_name: str, out: Path | No
     return summary
 
 
+def oracle_positions(s_max: float) -> np.ndarray:
+    """Where the oracle localizes (SI): every ORACLE_STEP from 0, and `s_max` when it is not one of them."""
+    n = int(math.floor(s_max / ORACLE_STEP + 1e-9)) + 1
+    s = np.arange(n) * ORACLE_STEP
+    return s if s_max - s[-1] <= 1e-9 else np.append(s, s_max)
+
+
+def judged_tolerance(stage) -> tuple[str, float, float]:
+    """The tolerance a run is judged at (name, m, rad): the stage's own when it names one, else 4 mm/10 deg."""
+    if stage.tolerance_t is not None and stage.tolerance_r is not None:
+        t, r = stage.tolerance_t, stage.tolerance_r
+        return f"{t * 1000:g}mm_{math.degrees(r):g}deg", t, r
+    return "4mm_10deg", *TOLERANCES["4mm_10deg"]
+
+
 def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, T0: np.ndarray, s_max: float,
             seed: int, reference_point: np.ndarray) -> dict[str, Any]:
     """Per-position mean localization errors along the whole arc (ground truth from the renderer;
-    translation error at the target's reference point)."""
+    translation error at the target's reference point): every ORACLE_STEP, and the arc's end `s_max`
+    itself (`cut`'s 30 deg is no multiple of 2.25 deg: without it a boundary never reached would read
+    as 29.25 deg, and a halt at the hard limit as an incursion)."""
     loc = Localizer(model, cfg.localization)
     thetas, t_errs, r_errs, n_mean = [], [], [], []
-    n_pos = int(math.floor(s_max / ORACLE_STEP + 1e-9)) + 1
-    for k in range(n_pos):
-        T = path.pose(k * ORACLE_STEP)
+    for k, s in enumerate(oracle_positions(s_max)):
+        T = path.pose(s)
         te, re, ns = [], [], []
         for i in range(ORACLE_FRAMES):
             fr = renderer.render(T, frame_index=100_000 + k * ORACLE_FRAMES + i, noise_seed=seed + 7)
@@ -300,7 +316,12 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
     }
     if oracle is not None:
         out["actual_boundary_deg"] = {k: math.degrees(v) for k, v in oracle["boundary"].items()}
-        a = oracle["boundary"]["4mm_10deg"]
+        # incursion and usage at the stage's own tolerance (cut: 2 mm/3 deg), the others beside them
+        name, tol_t, tol_r = judged_tolerance(stage)
+        a = actual_boundary(np.asarray(oracle["theta"]), np.asarray(oracle["t_err"]), np.asarray(oracle["r_err"]),
+                            tol_t, tol_r)
+        out["judged_tolerance"] = name
+        out["actual_boundary_judged_deg"] = math.degrees(a)
         out["incursion"] = bool(max_exec > a + 1e-9)
         out["envelope_usage"] = float(halt / a) if a > 0 else None
         out["incursion_by_tolerance"] = {k: bool(max_exec > v + 1e-9) for k, v in oracle["boundary"].items()}

@@ -368,7 +368,30 @@ def test_dry_run_replays_a_recording_through_the_loop(dataset: Path, tmp_path: P
     assert s["n_samples"] % 2 == 0 and s["n_samples"] >= 2  # 2 recorded images per visited position
     assert s["halt_angle_deg"] <= 15.0 + 1e-6 and s["max_overshoot_deg"] <= 1e-6
     assert set(s["actual_boundary_deg"]) == {"2mm_3deg", "4mm_10deg"}
+    # judged at the stage's own tolerance (explore: 4 mm/10 deg)
+    assert s["judged_tolerance"] == "4mm_10deg"
+    assert s["actual_boundary_judged_deg"] == pytest.approx(s["actual_boundary_deg"]["4mm_10deg"])
     assert (out / "timeline.png").is_file() and (out / "events.jsonl").is_file()
+
+
+def test_the_oracle_reaches_the_arcs_end_and_judges_at_the_stages_tolerance() -> None:
+    """cut ends at 30 deg, no multiple of the oracle's 2.25 deg: the end is a position of its own, else a
+    boundary never reached reads 29.25 deg and a halt at the hard limit an incursion (seen in cut's trials)."""
+    import math
+
+    from supervisor.config import load_config
+    from supervisor.dryrun import ORACLE_STEP, judged_tolerance, oracle_positions
+
+    cut = oracle_positions(math.radians(30.0))
+    assert math.degrees(cut[-1]) == pytest.approx(30.0) and math.degrees(cut[-2]) == pytest.approx(29.25)
+    assert np.allclose(np.diff(cut[:-1]), ORACLE_STEP)
+    full = oracle_positions(math.radians(45.0))  # a multiple: no extra position
+    assert len(full) == 21 and math.degrees(full[-1]) == pytest.approx(45.0)
+    cfg = load_config(None)
+    assert judged_tolerance(cfg.stage("cut"))[0] == "2mm_3deg"
+    assert judged_tolerance(cfg.stage("explore"))[0] == "4mm_10deg"
+    name, t, r = judged_tolerance(cfg.stage("cut"))
+    assert (t, r) == pytest.approx((0.002, math.radians(3.0)))
 
 
 def test_dry_run_replay_of_a_recording_without_its_motion(dataset: Path, tmp_path: Path,
