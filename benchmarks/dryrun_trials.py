@@ -92,7 +92,8 @@ def plot_trials(rows: list[dict], path: Path) -> Path:
         actual = np.array([r["actual_boundary_judged_deg"] for r in rs])
         halt = np.array([r["halt_angle_deg"] for r in rs])
         inc = np.array([bool(r["incursion"]) for r in rs])
-        ax.bar(x, actual, color="0.85", label="actual boundary (4 mm / 10 deg)")
+        tols = ", ".join(sorted({r["judged_tolerance"] for r in rs}))  # the stage's own (dryrun.judged_tolerance)
+        ax.bar(x, actual, color="0.85", label=f"actual boundary ({tols})")
         ax.scatter(x[~inc], halt[~inc], color="tab:green", zorder=3, s=18, label="halt")
         if inc.any():
             ax.scatter(x[inc], halt[inc], color="tab:red", zorder=3, s=24, label="halt past the boundary")
