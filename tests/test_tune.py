@@ -123,3 +123,59 @@ def test_a_stage_that_runs_up_to_the_allowance_is_tuned_so():
     assert whole["_final"].n_t == 15 and up_to["_final"].n_t == 16
     assert whole["in_sample"]["incursions"] == 0 and up_to["in_sample"]["incursions"] == 0
     assert up_to["final_step_margin_deg"] == pytest.approx(1.0) and whole["final_step_margin_deg"] is None
+
+
+def _report(tolerance: str, stage: str, folds: dict[str, list[tuple[float, float]]], static: dict[str, float]):
+    """A tune report's shape: per held-out scene its arcs' (stop, actual) in deg and static's envelope."""
+    return {"stage": stage, "tolerance": tolerance,
+            "folds": [{"held_out": sc, "static_envelope_deg": static[sc],
+                       "arcs": [{"name": f"arc_{sc}_az{k:03d}", "stop_deg": s, "actual_deg": a,
+                                 "incursion": s > a} for k, (s, a) in enumerate(arcs)]}
+                      for sc, arcs in folds.items()]}
+
+
+def test_the_headline_is_the_papers_mean_over_both_tolerances_against_statics_own_best():
+    from supervisor.evaluation.headline import format_headline, headline
+
+    wide = _report("4mm_10deg", "explore", {"a": [(20.0, 24.0), (30.0, 28.0)], "b": [(26.0, 40.0)]},
+                   {"a": 24.0, "b": 20.0})
+    tight = _report("2mm_3deg", "cut", {"a": [(10.0, 12.0), (18.0, 20.0)], "b": [(22.0, 30.0)]},
+                    {"a": 20.0, "b": 12.0})
+    h = headline([wide, tight], {"all": None, "only b": ["b"]})
+    w, t = h["all"]["rows"]
+    # SPL = min(stop, actual): 4 mm/10 deg (20 + 28 + 26) / 3, one incursion (30 past 28)
+    assert w["mean_spl_deg"] == pytest.approx(74 / 3) and w["incursions"] == 1
+    # static's own best is the earliest boundary; cross-validated, the envelope of the fold without a (24)
+    # is past neither of a's boundaries (24, 28), that of the fold without b (20) stays inside 40
+    assert w["static_best_deg"] == 24.0 and w["static_cv_incursions"] == 0
+    assert w["static_cv_mean_spl_deg"] == pytest.approx((24 + 24 + 20) / 3)
+    # 2 mm/3 deg: a's training envelope of 20 passes its arc whose boundary is 12
+    assert t["mean_spl_deg"] == pytest.approx(50 / 3) and t["static_best_deg"] == 12.0
+    assert t["static_cv_incursions"] == 1
+    m = h["all"]["mean"]
+    assert m["mean_spl_deg"] == pytest.approx((74 / 3 + 50 / 3) / 2) and m["incursions"] == 1
+    assert m["improvement_over_static_best"] == pytest.approx(((74 / 3 + 50 / 3) / 2) / 18.0 - 1.0)
+    # a subset of scenes is judged on its own arcs, static's best included
+    b = h["only b"]["mean"]
+    assert b["mean_spl_deg"] == pytest.approx(24.0) and b["static_best_deg"] == pytest.approx(35.0)
+    assert b["improvement_over_static_best"] == pytest.approx(24.0 / 35.0 - 1.0)
+    text = format_headline(h)
+    assert "mean of the tolerances" in text and f"{100 * m['improvement_over_static_best']:+.1f}%" in text
+    with pytest.raises(ValueError, match="one tune report per tolerance"):
+        headline([wide, wide], {"all": None})
+    with pytest.raises(ValueError, match="no arc of the scenes"):
+        headline([wide], {"none": ["c"]})
+
+
+def test_the_headline_reads_what_cross_validation_reports():
+    from supervisor.evaluation.headline import headline
+
+    arcs = [_arc("a", 0, 20, 0.5), _arc("a", 90, 25, 0.5), _arc("b", 0, 30, 0.5), _arc("c", 0, 22, 0.2)]
+    reports = [cross_validate(arcs, "next_step", ("logfit_lcb",), tol, math.radians(45.0), robust=False)
+               for tol in ("4mm_10deg", "2mm_3deg")]
+    h = headline(reports, {"all": None})
+    for row, r in zip(h["all"]["rows"], reports):
+        assert row["incursions"] == r["cross_validated"]["incursions"] == 1
+        assert row["mean_spl_deg"] == pytest.approx(r["cross_validated"]["mean_spl_deg"])
+        assert row["static_cv_mean_spl_deg"] == pytest.approx(r["cross_validated_static"]["mean_spl_deg"])
+        assert row["static_best_deg"] == pytest.approx(20.0)
