@@ -121,7 +121,7 @@ def test_drop_detector_needs_two_positions_and_extends_only_its_bases():
     x, n = np.full(3, 4.5), np.array([100.0, 110.0, 90.0])
     assert fit_drop(x, n) is None
     with pytest.raises(ValueError, match="drop detector"):
-        with_drop(fit_variant("local_lcb", TAIL_X, TAIL_N), TAIL_X, TAIL_N)
+        with_drop(fit_variant("local", TAIL_X, TAIL_N), TAIL_X, TAIL_N)
     # a fall of the same size from a noisier step is read later (a wider band) but still before the rate alone
     x2 = np.repeat([0.0, 2.25], 3)
     quiet = fit_drop(x2, np.array([200, 201, 199, 100, 101, 99], float))

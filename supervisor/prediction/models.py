@@ -25,7 +25,7 @@ fit. Variants (selectable by name per stage):
   such boundaries late). Falls back to ``logfit`` when four parameters are not
   determined (fewer than 5 positions, or a singular fit).
 
-- ``<v>_drop`` for v in ``DROP_BASES`` (``lcb``, ``logfit_lcb``, ``fw_lcb``): the base variant plus a drop
+- ``<v>_drop`` for v in ``DROP_BASES`` (``lcb``, ``logfit_lcb``, ``fw_lcb``, ``local_lcb``): the base variant plus a drop
   detector. The last step's fall in log(n_i + 1) (the two furthest positions' frame means) is
   carried one step on at the same rate, with a one-sided 95% band from the frames' spread, and the
   boundary is the earlier of the base's and where that extrapolation reaches n_t. At an occlusion
@@ -73,7 +73,7 @@ from supervisor.prediction.emg import (Bounds, FitResult, boundary, emg, emg_jac
                                        log_emg, log_emg_gradient, peak_location, sample_problem, solve_lsq)
 
 Z_LCB = 1.645
-DROP_BASES = ("lcb", "logfit_lcb", "fw_lcb")  # variants offered with the drop detector
+DROP_BASES = ("lcb", "logfit_lcb", "fw_lcb", "local_lcb")  # variants offered with the drop detector
 VARIANTS = ("paper", "logfit", "lcb", "logfit_lcb", "fw", "fw_lcb", "local", "local_lcb",
             *(f"{v}_drop" for v in DROP_BASES))
 LOCAL_POSITIONS = 4  # sampling positions in the window of the local-rate variants
@@ -300,7 +300,7 @@ def fit_variant(variant: str, x: np.ndarray, n: np.ndarray, *, tail_fallback: bo
         raise ValueError(f"local_span must be a positive number, got {local_span}")
     if variant.endswith("_drop"):
         base = fit_variant(variant.removesuffix("_drop"), x, n, tail_fallback=tail_fallback, guard=guard,
-                           time_budget_s=time_budget_s)
+                           time_budget_s=time_budget_s, local_span=local_span)
         return with_drop(base, x, n)
     t0 = time.perf_counter()
     x = np.asarray(x, float).ravel()
