@@ -6,12 +6,15 @@ the same with the error-aware boundary, and static. Prints cross-validated incur
 mean SPL, static's cross-validated SPL and the improvement over it, and what would be chosen on
 all scenes (in-sample).
 
-    .venv/bin/python benchmarks/tune_suite.py BENCH_DIR --cache OUT/cache [-o OUT/loso.json] [--jobs 2]
+    .venv/bin/python benchmarks/tune_suite.py BENCH_DIR [BENCH_DIR2 ..] --cache OUT/cache [--cache OUT/cache-2 ..]
+        [-o OUT/loso.json] [--jobs 2]
         [--hard-limit-deg 45] [--plain] [--replayed FILE] [--suite v2] [--tolerances T,..]
         [--error-aware both|on|off] [--families F,..] [--final-step-margin-deg M]
 
 `--plain` chooses without the robust slack (the plain best zero-incursion point per fold);
-`--replayed FILE` keeps the replayed suite (a pickle) so that later runs skip the fits.
+`--replayed FILE` keeps the replayed suite (a pickle) so that later runs skip the fits. Several suites
+(renderings or recordings of the same scenes, one `--cache` each) are cross-validated together: a fold
+leaves a scene out of every one.
 """
 
 from __future__ import annotations
@@ -27,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from supervisor.config import load_config  # noqa: E402
 from supervisor.dataset.benchmark import SUITES  # noqa: E402
-from supervisor.evaluation.experiments import TOLERANCES, evaluate_suite  # noqa: E402
-from supervisor.evaluation.tune import cross_validate  # noqa: E402
+from supervisor.evaluation.experiments import TOLERANCES  # noqa: E402
+from supervisor.evaluation.tune import cross_validate, load_recordings  # noqa: E402
 
 FAMILIES = {
     "logfit_lcb": ("logfit_lcb",),
@@ -38,18 +41,21 @@ FAMILIES = {
     "lcb_drop": ("lcb_drop",),
     "fw_lcb_drop": ("fw_lcb_drop",),
     "logfit_lcb_drop": ("logfit_lcb_drop",),
+    "local_lcb_drop": ("local_lcb_drop",),
     "choose:logfit_lcb+fw_lcb+local_lcb": ("logfit_lcb", "fw_lcb", "local_lcb"),
     "choose:lcb+logfit_lcb+fw_lcb+local_lcb": ("lcb", "logfit_lcb", "fw_lcb", "local_lcb"),
     "choose:lcb+logfit_lcb+fw_lcb": ("lcb", "logfit_lcb", "fw_lcb"),  # the continuous stages' whole-history fits
     "choose:lcb_drop+logfit_lcb_drop+fw_lcb_drop": ("lcb_drop", "logfit_lcb_drop", "fw_lcb_drop"),
     "choose:all_lcb": ("lcb", "logfit_lcb", "fw_lcb", "local_lcb", "lcb_drop", "logfit_lcb_drop", "fw_lcb_drop"),
+    "choose:all_lcb+local_lcb_drop": ("lcb", "logfit_lcb", "fw_lcb", "local_lcb", "lcb_drop", "logfit_lcb_drop",
+                                      "fw_lcb_drop", "local_lcb_drop"),
 }
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("bench_dir")
-    ap.add_argument("--cache", required=True)
+    ap.add_argument("bench_dir", nargs="+", help="a suite, or several renderings/recordings of the same scenes")
+    ap.add_argument("--cache", action="append", required=True, help="once per suite, in order")
     ap.add_argument("-o", "--out", default=None)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--config", default=None)
@@ -69,7 +75,7 @@ def main() -> int:
     if rp is not None and rp.is_file():
         results = pickle.loads(rp.read_bytes())
     else:
-        results = evaluate_suite(cfg, a.bench_dir, a.cache, a.jobs)
+        results = load_recordings(cfg, a.bench_dir, a.cache, a.jobs, lambda m: print(m, file=sys.stderr, flush=True))
         if rp is not None:
             rp.write_bytes(pickle.dumps(results))
     arcs = [r for r in results if r.kind == "arc" and (a.suite is None or r.scene in SUITES[a.suite])]

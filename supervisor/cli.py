@@ -409,15 +409,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     tu = sub.add_parser("tune", help="a stage's operating point for a tolerance, by leave-one-scene-out "
                                       "cross-validation on a benchmark suite")
-    tu.add_argument("bench_dir")
+    tu.add_argument("bench_dir", nargs="+",
+                    help="a benchmark suite, or several recordings of the same scenes (e.g. `benchmark generate "
+                         "--seed`): a fold leaves a scene out of every one")
     tu.add_argument("--stage", required=True)
     tu.add_argument("--tolerance", required=True, choices=("2mm_3deg", "4mm_10deg"))
     tu.add_argument("-o", "--out", default=None, help="output directory (default out/tune-STAGE-TOLERANCE)")
     tu.add_argument("--variants", default=None,
                     help="comma-separated model variants to choose among (default: the stage's)")
     tu.add_argument("--error-aware", action="store_true", help="also tune the error-aware boundary's kappa")
-    tu.add_argument("--cache", default=None, help="localization cache directory (default OUT/cache; "
-                                                  "an `evaluate` OUT/cache can be reused)")
+    tu.add_argument("--cache", action="append", default=None,
+                    help="localization cache directory, once per suite in order (default OUT/cache, then "
+                         "OUT/cache-2, ...; an `evaluate` OUT/cache can be reused)")
     tu.add_argument("--jobs", type=int, default=None, help="parallel processes (default 2)")
     tu.set_defaults(func=cmd_tune)
 

@@ -486,3 +486,19 @@ def test_tune_cross_validates_over_scenes_and_writes_a_loadable_stage(dataset: P
     assert ok and all(0 < float(r["sd_mm"]) < 5 for r in ok)  # the pose uncertainty is recorded
     assert main(["tune", str(bench), "--stage", "nope", "--tolerance", "2mm_3deg", "-o", str(out),
                  "--cache", str(out / "cache"), "--jobs", "1"]) == 2  # unknown stage: one line, status 2
+    # two recordings of the same scenes: a fold leaves a scene out of both; each suite has its own cache
+    import shutil
+    again = shutil.copytree(bench, tmp_path / "again")
+    out2 = tmp_path / "tune2"
+    assert main(["tune", str(bench), str(again), "--stage", "explore", "--tolerance", "4mm_10deg", "-o", str(out2),
+                 "--cache", str(out / "cache"), "--cache", str(out2 / "again-cache"), "--jobs", "1"]) == 0
+    assert "in 2 recordings" in capsys.readouterr().out
+    two = json.loads((out2 / "tune.json").read_text())
+    assert two["arcs"] == 2 * report["arcs"] and two["suites"] == [str(bench), str(again)]
+    assert two["scenes"] == ["phantom", "phantom_twin"] and len(two["folds"]) == 2
+    held = {a["name"] for a in two["folds"][0]["arcs"]}
+    assert held == {f"bench/{dataset.name}_phantom", f"again/{dataset.name}_phantom"}
+    assert (out2 / "again-cache" / f"{dataset.name}_phantom.csv").is_file()
+    assert "in 2 recordings" in (out2 / "explore.yaml").read_text()
+    assert main(["tune", str(bench), str(again), "--stage", "explore", "--tolerance", "4mm_10deg", "-o", str(out2),
+                 "--cache", str(out / "cache"), "--jobs", "1"]) == 2  # one cache for two suites: refused

@@ -12,6 +12,12 @@ is chosen for one tolerance on a benchmark suite's arcs, and its generalisation 
   envelope cross-validated the same way, for comparison);
 - finally choose on all scenes and write the tuned stage as YAML (mm/deg, like the config).
 
+Several recordings of the same scenes (suites rendered with other noise seeds, or sessions recorded
+again) can be tuned on at once: a fold then leaves a scene out in every recording. The boundary of
+one arc is the first failing position of one recording, and it moves between recordings of the same
+arc (benchmarks/boundary_scatter.py); a point chosen to stop just short of one recording's boundaries
+passes another's, which a single recording cannot show.
+
 Offline replay runs at the recording's step (2.25 deg), the live stage at its own `step_deg`. A stage that
 runs up to the allowance theta_p - margin (stop-and-go with `final_step: to_allowance`, and continuous
 sampling) is replayed so, with its margin: the next recorded position is reached only if the allowance
@@ -21,12 +27,13 @@ reaches it (DatasetResult.to_allowance_stops).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import yaml
@@ -125,10 +132,36 @@ def _static_envelope(actual: np.ndarray) -> float:
     return float(np.min(actual))
 
 
-def tune(cfg: Config, bench_dir: str | Path, stage: str, tolerance: str, out: str | Path, *,
-         cache: str | Path | None = None, variants: tuple[str, ...] | None = None, error_aware: bool = False,
-         jobs: int = 2, progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
-    """Leave-one-scene-out tuning of `stage` for `tolerance`; writes OUT/tune.json and OUT/<stage>.yaml."""
+def default_caches(out: Path, n: int) -> list[Path]:
+    """Localization caches of `n` suites under OUT: OUT/cache for the first (as with one suite), then
+    OUT/cache-2, OUT/cache-3, ... (one per suite: the same dataset names in two recordings must not share)."""
+    return [out / "cache"] + [out / f"cache-{k}" for k in range(2, n + 1)]
+
+
+def load_recordings(cfg: Config, bench_dirs: Sequence[str | Path], caches: Sequence[str | Path],
+                    jobs: int, progress) -> list[DatasetResult]:
+    """Every suite localized (each into its own cache) and replayed. With several suites an arc is named
+    `<suite dir name>/<dataset>`, so a report tells the recordings apart; its scene stays the scene."""
+    if len(caches) != len(bench_dirs):
+        raise DatasetError(Path(str(caches[0]) if caches else "."),
+                           f"one cache per suite: {len(bench_dirs)} suites, {len(caches)} caches")
+    if len({Path(c).resolve() for c in caches}) != len(caches):
+        raise DatasetError(Path(str(caches[0])), "two suites given the same cache directory")
+    out: list[DatasetResult] = []
+    for bench, cache in zip(bench_dirs, caches):
+        results = evaluate_suite(cfg, bench, cache, jobs, progress)
+        if len(bench_dirs) > 1:
+            results = [dataclasses.replace(r, name=f"{Path(bench).name}/{r.name}") for r in results]
+        out += results
+    return out
+
+
+def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, tolerance: str, out: str | Path, *,
+         cache: str | Path | Sequence[str | Path] | None = None, variants: tuple[str, ...] | None = None,
+         error_aware: bool = False, jobs: int = 2,
+         progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
+    """Leave-one-scene-out tuning of `stage` for `tolerance` on one suite or several recordings of the same
+    scenes (`bench_dir` a list, `cache` one per suite or None); writes OUT/tune.json and OUT/<stage>.yaml."""
     if tolerance not in TOLERANCES:
         raise ConfigError(Path(cfg.file), "tolerance", f"expected one of {', '.join(TOLERANCES)}, got {tolerance!r}")
     st = cfg.stage(stage)
@@ -140,13 +173,17 @@ def tune(cfg: Config, bench_dir: str | Path, stage: str, tolerance: str, out: st
         if v not in VARIANTS:
             raise ConfigError(Path(cfg.file), "variants", f"unknown model variant {v!r}; expected one of {VARIANTS}")
     out = Path(out)
-    results = evaluate_suite(cfg, bench_dir, Path(cache) if cache else out / "cache", jobs, progress)
+    benches = [bench_dir] if isinstance(bench_dir, (str, Path)) else list(bench_dir)
+    caches = (default_caches(out, len(benches)) if cache is None
+              else [cache] if isinstance(cache, (str, Path)) else list(cache))
+    results = load_recordings(cfg, benches, caches, jobs, progress)
     arcs = [r for r in results if r.kind == "arc"]
     # a run that goes up to the allowance (stop-and-go's last step, or continuous sampling) is replayed so
     final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
     report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress,
                             final_margin=final_margin)
     report["stage"] = stage
+    report["suites"] = [str(b) for b in benches]
     final = report.pop("_final")
     out.mkdir(parents=True, exist_ok=True)
     if final is not None:
@@ -230,15 +267,21 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
     doc: dict[str, Any] = {"stages": {stage: node}}
     cv = report["cross_validated"]
     head = (f"# stage {stage} tuned for {tolerance} by leave-one-scene-out cross-validation over "
-            f"{report['arcs']} arcs of {len(report['scenes'])} scenes:\n"
+            f"{report['arcs']} arcs of {len(report['scenes'])} scenes{_recordings(report)}:\n"
             f"# cross-validated incursion rate {cv['incursion_rate']:.3f}, mean SPL {cv['mean_spl_deg']:.2f} deg\n")
     return head + yaml.safe_dump(doc, sort_keys=False)
+
+
+def _recordings(report: dict[str, Any]) -> str:
+    n = len(report.get("suites", ()))
+    return f" in {n} recordings" if n > 1 else ""
 
 
 def format_report(r: dict[str, Any]) -> str:
     cv, cs = r["cross_validated"], r["cross_validated_static"]
     imp = r["cv_improvement_over_static"]
-    lines = [f"stage {r['stage']}, tolerance {r['tolerance']}, {r['arcs']} arcs over {len(r['scenes'])} scenes "
+    lines = [f"stage {r['stage']}, tolerance {r['tolerance']}, {r['arcs']} arcs over {len(r['scenes'])} scenes"
+             f"{_recordings(r)} "
              f"(leave one scene out"
              + ("" if r.get("final_step_margin_deg") is None
                 else f"; up to the allowance, margin {r['final_step_margin_deg']:g} deg") + ")",
