@@ -502,3 +502,6 @@ def test_tune_cross_validates_over_scenes_and_writes_a_loadable_stage(dataset: P
     assert "in 2 recordings" in (out2 / "explore.yaml").read_text()
     assert main(["tune", str(bench), str(again), "--stage", "explore", "--tolerance", "4mm_10deg", "-o", str(out2),
                  "--cache", str(out / "cache"), "--jobs", "1"]) == 2  # one cache for two suites: refused
+    assert main(["tune", str(bench), str(bench), "--stage", "explore", "--tolerance", "4mm_10deg", "-o", str(out2),
+                 "--jobs", "1"]) == 2  # the same suite twice: refused
+    assert "the same suite given twice" in capsys.readouterr().err

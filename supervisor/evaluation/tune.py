@@ -141,17 +141,22 @@ def default_caches(out: Path, n: int) -> list[Path]:
 def load_recordings(cfg: Config, bench_dirs: Sequence[str | Path], caches: Sequence[str | Path],
                     jobs: int, progress) -> list[DatasetResult]:
     """Every suite localized (each into its own cache) and replayed. With several suites an arc is named
-    `<suite dir name>/<dataset>`, so a report tells the recordings apart; its scene stays the scene."""
+    `<suite dir name>/<dataset>` (the whole path where two suites share a directory name), so a report
+    tells the recordings apart; its scene stays the scene."""
     if len(caches) != len(bench_dirs):
         raise DatasetError(Path(str(caches[0]) if caches else "."),
                            f"one cache per suite: {len(bench_dirs)} suites, {len(caches)} caches")
     if len({Path(c).resolve() for c in caches}) != len(caches):
         raise DatasetError(Path(str(caches[0])), "two suites given the same cache directory")
+    if len({Path(b).resolve() for b in bench_dirs}) != len(bench_dirs):
+        raise DatasetError(Path(str(bench_dirs[0])), "the same suite given twice (its arcs would count twice)")
+    names = [Path(b).name for b in bench_dirs]
+    labels = names if len(set(names)) == len(names) else [str(b) for b in bench_dirs]
     out: list[DatasetResult] = []
-    for bench, cache in zip(bench_dirs, caches):
+    for bench, cache, label in zip(bench_dirs, caches, labels):
         results = evaluate_suite(cfg, bench, cache, jobs, progress)
         if len(bench_dirs) > 1:
-            results = [dataclasses.replace(r, name=f"{Path(bench).name}/{r.name}") for r in results]
+            results = [dataclasses.replace(r, name=f"{label}/{r.name}") for r in results]
         out += results
     return out
 
