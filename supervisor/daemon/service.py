@@ -134,8 +134,11 @@ class Daemon:
         return f"{self.state.value}, stage {self.sup.stage.name}{fault}"
 
     # -- checks -----------------------------------------------------------------------------
-    def fresh(self) -> list[str]:
-        """What is not fresh right now: the robot state and the camera's newest frame."""
+    def fresh(self, since: float | None = None) -> list[str]:
+        """What is not fresh right now: the robot state and the camera's newest frame. With `since` (clock
+        time), the robot state must also have arrived at or after it: a check that sees the robot stream anew,
+        not a state cached before it began (a controller killed 80 ms ago left one younger than
+        STATE_MAX_AGE)."""
         problems = []
         now = self._now()
         try:
@@ -146,6 +149,9 @@ class Daemon:
                 problems.append(f"robot state: {bad}")
             elif now - st.t > STATE_MAX_AGE:
                 problems.append(f"robot state is {1000 * (now - st.t):.0f} ms old")
+            elif since is not None and st.t < since:
+                problems.append(f"no robot state since the check began (the newest is {1000 * (now - st.t):.0f} "
+                                "ms old)")
         except Exception as exc:  # noqa: BLE001 - a failing driver is a problem to report
             problems.append(f"robot state: {type(exc).__name__}: {exc}")
         age = self.sup.frames.newest_age(now) if hasattr(self.sup.frames, "newest_age") else None
@@ -159,10 +165,11 @@ class Daemon:
     def self_check(self, timeout: float = 30.0) -> list[str]:
         """Before READY=1 and before arming: fresh robot state, frames coming, a model or a way to one."""
         t_end = time.monotonic() + timeout
-        problems = self.fresh()
+        since = self._now()  # a robot state from before this check proves nothing about the link now
+        problems = self.fresh(since)
         while problems and time.monotonic() < t_end:  # the camera's first frame may take a moment
             time.sleep(0.05)
-            problems = self.fresh()
+            problems = self.fresh(since)
         if self.sup.model is None and not hasattr(self.drivers.camera, "start_view"):
             problems.append("no target model loaded (model load FILE), and this camera cannot capture one "
                             "without a configured start view and region of interest")
