@@ -258,6 +258,8 @@ class PathTracker:
         p, v, a = traj.at_time(t)
         if t >= traj.duration:  # end of a rest-to-rest or braking profile: exactly at rest
             v, a = [0.0], [0.0]
+            if key[0] == "move":  # and a move exactly at its target (Ruckig's end lands within ~1e-11 of it)
+                p = [key[1]]
         step = Step(key, traj, t, PathState(float(p[0]), float(v[0]), float(a[0])))
         if step.t == self.dt:
             self._proposed = step
