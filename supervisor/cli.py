@@ -62,7 +62,15 @@ def cmd_benchmark_generate(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     t0 = time.monotonic()
-    out = generate_suite(cfg, args.out, quick=args.quick, jobs=args.jobs, seed=args.seed, suite=args.suite)
+    arc_step = None
+    if args.step_deg is not None:
+        sweep = math.degrees(cfg.dataset.arc.sweep)
+        if not 0 < args.step_deg <= sweep:
+            raise SupervisorError(f"benchmark generate: --step-deg must be in (0, {sweep:g}] deg (the arc's sweep, "
+                                  f"dataset.arc.sweep_deg), got {args.step_deg:g}")
+        arc_step = math.radians(args.step_deg)
+    out = generate_suite(cfg, args.out, quick=args.quick, jobs=args.jobs, seed=args.seed, suite=args.suite,
+                         arc_step=arc_step)
     print(f"benchmark suite ready in {out} ({time.monotonic() - t0:.0f} s)")
     return 0
 
@@ -386,6 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="v3 (default): every v2 dataset plus the decay-shape scenes; v2: the previous suite exactly")
     bg.add_argument("--jobs", type=int, default=None, help="parallel processes (default: up to 2)")
     bg.add_argument("--seed", type=int, default=0)
+    bg.add_argument("--step-deg", type=_finite, default=None,
+                    help="the arcs' step instead of the config's dataset.arc.step_deg (2.25): a live stage's step "
+                         "(explore: 1.5) makes `tune` replay the steps that stage takes")
     bg.set_defaults(func=cmd_benchmark_generate)
 
     md = sub.add_parser("model", help="target models").add_subparsers(dest="sub", required=True)

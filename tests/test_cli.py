@@ -281,6 +281,36 @@ def test_dataset_generate_rejects_zero_images_per_position(tmp_path: Path, capfd
     assert not (tmp_path / "ds").exists()
 
 
+def test_benchmark_generate_refuses_a_step_outside_the_sweep(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    rc, _, err = run(["benchmark", "generate", tmp_path / "suite", "--quick", "--step-deg", "50"], capfd)
+    assert_usage_error(rc, err, "--step-deg must be in (0, 45]", "got 50")
+    assert not (tmp_path / "suite").exists()
+
+
+def test_a_suite_item_recorded_at_another_step_has_its_positions_at_that_step(tmp_path: Path) -> None:
+    """`benchmark generate --step-deg 1.5` (the explore stage's live step): each arc is recorded at that step
+    (here a 3 deg sweep of one image per position, to keep it short)."""
+    import math
+
+    from supervisor.dataset.benchmark import SuiteItem, _run_item
+
+    text = DEFAULT_CONFIG.read_text()
+    assert "    sweep_deg: 45\n" in text
+    cfg = tmp_path / "short.yaml"
+    cfg.write_text(text.replace("    sweep_deg: 45\n", "    sweep_deg: 3\n", 1))
+    out = tmp_path / "arc"
+    _run_item(str(cfg), str(out), SuiteItem("arc_phantom_az090", "arc", "phantom", azimuth_deg=90.0), 1, 0,
+              arc_step=math.radians(1.5))
+    with (out / "frames.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    theta = sorted({round(math.degrees(float(r["s"])), 6) for r in rows})  # s: the arc's path coordinate, rad
+    assert theta == pytest.approx([0.0, 1.5, 3.0], abs=1e-6)
+    with pytest.raises(ValueError, match="arc step"):
+        _run_item(str(cfg), str(tmp_path / "bad"), SuiteItem("arc_phantom_az090", "arc", "phantom", 90.0), 1, 0,
+                  arc_step=math.radians(4.0))
+    assert not (tmp_path / "bad").exists()
+
+
 def _config_with_driver(tmp_path: Path, section: str, name: str) -> Path:
     """A copy of config/default.yaml with `<section>.driver` replaced."""
     lines = DEFAULT_CONFIG.read_text().splitlines()

@@ -130,3 +130,56 @@ def test_offline_drop_detector_stops_where_the_live_predictor_does_and_before_it
             live = math.radians(deg)
             break
     assert live == pytest.approx(drop)
+
+
+def test_on_a_recording_at_the_live_step_the_replay_stops_where_the_live_predictor_does():
+    """A 1.5 deg recording (the live stage's step): the replay reads the local rate and the error trend over
+    the live loop's angles (LOCAL_SPAN, ERR_SPAN), not its last 4 positions, so it stops where the stage's
+    predictor (builder.stage_predictor's spans) stops on the same data."""
+    from supervisor.evaluation.experiments import KAPPAS, N_T, evaluate_dataset
+    from supervisor.localization.offline import FrameArtifact
+    from supervisor.prediction import make_predictor
+    from supervisor.prediction.errorbound import ERR_SPAN
+    from supervisor.prediction.models import LOCAL_SPAN
+
+    step = 1.5
+    rows, per_pos = [], []
+    for p in range(31):
+        deg = step * p
+        # a plateau, then an e-fold every 3 deg from 24 deg; the pose spread grows from 15 deg. Past such a
+        # kink the rate read over the last 4 positions (4.5 deg) and over 6.75 deg differ, and so do the stops
+        # (n_t 40, 80: 30 vs 28.5 deg, 28.5 vs 27; kappa 4: 19.5 vs 21 deg)
+        mean = 300.0 if deg < 24 else 300 * math.exp(-(deg - 24) / 3.0)
+        ns = [int(round(mean * f)) for f in (0.96, 1.0, 1.04)]
+        sd = 0.0002 * math.exp(max(0.0, deg - 15) / 4.0)
+        per_pos.append((deg, ns, sd))
+        for i, n in enumerate(ns):
+            rows.append(FrameArtifact(3 * p + i, p, math.radians(deg), 0.0, n, n + 10, 0.0002, math.radians(0.05),
+                                      0.5, "OK", 0.05, {}, None, 0.0001, math.radians(0.1),
+                                      sd_t=sd, sd_r=math.radians(0.05) * sd / 0.0002))
+    r = evaluate_dataset("bend", "arc", rows)
+    assert r.step == pytest.approx(math.radians(step))
+    tol_t, tol_r = 0.004, math.radians(10.0)
+    for n_t, kappa in ((40, None), (80, None), (15, None), (40, 4.0)):
+        k = N_T.index(n_t)
+        if kappa is None:
+            replay = r.stops["next_step_local_lcb"][k]
+        else:
+            replay = min(r.stops["next_step_local_lcb"][k], r.error_stop("4mm_10deg", kappa))
+        pred = make_predictor("next_step", "local_lcb", n_t, math.radians(step), error_kappa=kappa,
+                              tolerance_t=tol_t, tolerance_r=tol_r, local_span=math.radians(LOCAL_SPAN),
+                              error_span=math.radians(ERR_SPAN))
+        live = math.radians(45.0)
+        for p, (deg, ns, sd) in enumerate(per_pos):
+            frames = np.radians(np.full(3, deg))
+            if kappa is None:
+                out = pred.update(frames, np.array(ns, float))
+            else:
+                err = np.column_stack([np.full(3, sd), np.full(3, math.radians(0.05) * sd / 0.0002)])
+                out = pred.update(frames, np.array(ns, float), err)
+            if p >= 3 and not out.allow_next:  # the warm-up: the first 4 positions are sampled regardless
+                live = math.radians(deg)
+                break
+        assert live == pytest.approx(replay), (n_t, kappa, math.degrees(live), math.degrees(replay))
+        assert live < math.radians(45.0)
+    assert 4.0 in KAPPAS  # the replay's sweep includes the kappa used above

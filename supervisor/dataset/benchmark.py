@@ -37,7 +37,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from supervisor.config import Config, load_config
@@ -74,11 +74,23 @@ def suite_items(cfg: Config, suite: str = DEFAULT_SUITE) -> list[SuiteItem]:
     return items
 
 
-def _run_item(config_file: str, out: str, item: SuiteItem, images_per_position: int | None, seed: int) -> float:
+def _with_arc_step(cfg: Config, arc_step: float | None) -> Config:
+    """`cfg` with the arcs' step replaced (rad; None: the config's `dataset.arc.step_deg`)."""
+    if arc_step is None:
+        return cfg
+    arc = cfg.dataset.arc
+    if not (math.isfinite(arc_step) and 0 < arc_step <= arc.sweep):
+        raise ValueError(f"the arc step must be in (0, {math.degrees(arc.sweep):g}] deg, got "
+                         f"{math.degrees(arc_step):g}")
+    return replace(cfg, dataset=replace(cfg.dataset, arc=replace(arc, step=arc_step)))
+
+
+def _run_item(config_file: str, out: str, item: SuiteItem, images_per_position: int | None, seed: int,
+              arc_step: float | None = None) -> float:
     import cv2
 
     cv2.setNumThreads(1)
-    cfg = load_config(config_file)
+    cfg = _with_arc_step(load_config(config_file), arc_step)
     t0 = time.monotonic()
     if item.kind == "arc":
         generate_arc(cfg, out, ArcSpec(math.radians(item.azimuth_deg), images_per_position), item.scene, seed,
@@ -90,15 +102,20 @@ def _run_item(config_file: str, out: str, item: SuiteItem, images_per_position: 
 
 
 def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int | None = None, seed: int = 0,
-                   suite: str = DEFAULT_SUITE) -> Path:
-    """Generate (or complete) the benchmark suite `suite` (v2 or v3) under `out`."""
+                   suite: str = DEFAULT_SUITE, arc_step: float | None = None) -> Path:
+    """Generate (or complete) the benchmark suite `suite` (v2 or v3) under `out`. `arc_step` (rad): the arcs'
+    step instead of the config's `dataset.arc.step_deg` (e.g. a live stage's 1.5 deg, so that tuning on the
+    suite replays the steps that stage takes)."""
     out = Path(out)
+    _with_arc_step(cfg, arc_step)  # checked before anything is written
     items = suite_items(cfg, suite)
     ipp = 3 if quick else None
     manifest = {"config_sha256": cfg.sha256, "quick": quick, "seed": seed, "images_per_position": ipp or "config",
                 "datasets": [asdict(i) for i in items]}
     if suite != "v2":
         manifest["suite"] = suite  # a v2 manifest stays exactly what v2 wrote
+    if arc_step is not None:
+        manifest["arc_step_deg"] = math.degrees(arc_step)
     mf = out / SUITE_FILE
     prepare_incremental(out, "benchmark generate", known=[SUITE_FILE, *(i.name for i in items)])
     if mf.exists():
@@ -115,7 +132,7 @@ def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int 
     t0 = time.monotonic()
     done = len(items) - len(todo)
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = {pool.submit(_run_item, cfg.file, str(out / i.name), i, ipp, seed): i for i in todo}
+        futures = {pool.submit(_run_item, cfg.file, str(out / i.name), i, ipp, seed, arc_step): i for i in todo}
         failed: list[str] = []
         for fut in as_completed(futures):
             item = futures[fut]

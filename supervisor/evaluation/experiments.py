@@ -42,9 +42,9 @@ from supervisor.evaluation.cache import localized
 from supervisor.outputs import prepare_incremental
 from supervisor.evaluation.metrics import CurvePoint, actual_boundary, max_mean_spl_zero_incursion, spl
 from supervisor.prediction.emg import ANGLE, TRANSLATION
-from supervisor.prediction.errorbound import KAPPAS, ErrorTrend, log_margin, position_log_sd
+from supervisor.prediction.errorbound import ERR_SPAN, KAPPAS, ErrorTrend, log_margin, position_log_sd
 from supervisor.prediction.mlp import MLPPredictor
-from supervisor.prediction.models import VARIANTS, ModelFit, fit_variant, with_drop
+from supervisor.prediction.models import LOCAL_SPAN, VARIANTS, ModelFit, fit_variant, with_drop
 
 TOLERANCES = {"2mm_3deg": (0.002, math.radians(3.0)), "4mm_10deg": (0.004, math.radians(10.0))}
 N_T = tuple(range(4, 101))
@@ -194,6 +194,12 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     def prefix(k: int) -> tuple[np.ndarray, np.ndarray]:
         return axis.to_fit(np.concatenate(xsamp[:k + 1])), np.concatenate(nsamp[:k + 1])
 
+    # Arcs: the local variants' rate and the error trend over an angle, as the live loop reads them (LOCAL_SPAN,
+    # ERR_SPAN). On the suite's 2.25 deg grid that is exactly their last 4 positions; on a recording at the live
+    # step (1.5 deg) it is the window the live loop uses, so tuning on it replays what runs.
+    local_span = float(axis.to_fit(math.radians(LOCAL_SPAN))) if kind == "arc" else None
+    err_span = math.radians(ERR_SPAN) if kind == "arc" else None
+
     all_fits: dict[str, tuple[ModelFit, list[ModelFit | None]]] = {}
     for variant in VARIANTS:
         suffix = "" if variant == "paper" else f"_{variant}"
@@ -203,10 +209,11 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
             fits = [None if f is None else with_drop(f, *prefix(k)) for k, f in enumerate(base_fits)]
         else:
             # offline: no time budget, so that results never depend on the machine's load
-            mf = fit_variant(variant, *prefix(k_lr - 1), time_budget_s=math.inf)
+            mf = fit_variant(variant, *prefix(k_lr - 1), time_budget_s=math.inf, local_span=local_span)
             # Next step: a fit after every position (the rule applied per n_t below). Warm-up as in the
             # supervisor loop: the first k positions are sampled whatever the fits say.
-            fits = [fit_variant(variant, *prefix(k), time_budget_s=math.inf) if k + 1 >= k_lr else None
+            fits = [fit_variant(variant, *prefix(k), time_budget_s=math.inf, local_span=local_span)
+                    if k + 1 >= k_lr else None
                     for k in range(len(x))]
         all_fits[variant] = (mf, fits)
         # Long range: one fit on the first k positions.
@@ -254,7 +261,8 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
             if k + 1 < k_lr:
                 ms.append(math.nan)
                 continue
-            trends = [(ErrorTrend.fit(x[:k + 1], lt[:k + 1]), tt), (ErrorTrend.fit(x[:k + 1], lr[:k + 1]), tr)]
+            trends = [(ErrorTrend.fit(x[:k + 1], lt[:k + 1], span=err_span), tt),
+                      (ErrorTrend.fit(x[:k + 1], lr[:k + 1], span=err_span), tr)]
             ms.append(log_margin(trends, float(x[k]) + step_si, 1.0))
         err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],

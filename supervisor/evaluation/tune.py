@@ -18,7 +18,11 @@ one arc is the first failing position of one recording, and it moves between rec
 arc (benchmarks/boundary_scatter.py); a point chosen to stop just short of one recording's boundaries
 passes another's, which a single recording cannot show.
 
-Offline replay runs at the recording's step (2.25 deg), the live stage at its own `step_deg`. A stage that
+Offline replay runs at the recording's step, the live stage at its own `step_deg`. The suite's default
+step is 2.25 deg; a stage with 1.5 deg steps then needs a margin of 0.75 deg live to look as far ahead as
+its replay did. A suite recorded at the stage's own step (`benchmark generate --step-deg 1.5`) replays the
+steps the stage takes, and the local variants' rate and the error trend are read over the same angles as
+live (experiments.evaluate_dataset), so the stage can be tuned with the margin it runs with. A stage that
 runs up to the allowance theta_p - margin (stop-and-go with `final_step: to_allowance`, and continuous
 sampling) is replayed so, with its margin: the next recorded position is reached only if the allowance
 reaches it (DatasetResult.to_allowance_stops).
