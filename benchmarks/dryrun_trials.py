@@ -9,6 +9,7 @@ OUT/trials.png (halt against actual boundary, per trial and mode).
 
     .venv/bin/python benchmarks/dryrun_trials.py [-o out/trials] [--stage explore] [--jobs 2]
         [--scenes phantom,box,...] [--suite v3] [--azimuths 0,90,270] [--config FILE] [--resume]
+        [--oracle-step-deg 2.25] [--oracle-frames 3]
 
 Default scenes: those of benchmark suite v3 (`--suite v2` for the previous suite's).
 """
@@ -31,27 +32,29 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
+from supervisor.dryrun import ORACLE_FRAMES, ORACLE_STEP  # noqa: E402
 
 
-def _trial(args: tuple[str, float, str, str, str, str | None, bool, int]) -> dict:
+def _trial(args: tuple[str, float, str, str, str, str | None, bool, int, float, int]) -> dict:
     import cv2
 
     cv2.setNumThreads(1)
     from supervisor.config import load_config
     from supervisor.dryrun import DryRunSpec, run_dry_run
 
-    scene, az, sampling, stage, out, config, resume, seed = args
+    scene, az, sampling, stage, out, config, resume, seed, oracle_step_deg, oracle_frames = args
     done = Path(out) / "summary.json"
-    if resume and done.is_file():  # a trial an interrupted run finished (same stage, config and seed: checked)
+    if resume and done.is_file():  # a trial an interrupted run finished (same stage, config, seed, oracle: checked)
         s = json.loads(done.read_text())
         if (s.get("stage") == stage and s.get("config_sha256") == load_config(config).sha256
-                and s.get("seed") == seed):
+                and s.get("seed") == seed and s.get("oracle_frames") == oracle_frames
+                and abs(s.get("oracle_step_deg", math.nan) - oracle_step_deg) < 1e-9):
             return s
     cfg = load_config(config)
     # an arc the arm cannot complete at the stage's top speed runs its reachable part (the summary's
     # max executed angle and halt say where it ended) instead of ending the whole suite
     spec = DryRunSpec(stage=stage, azimuth=math.radians(az), sampling=sampling, scene=scene, accept_reachable=True,
-                      seed=seed)
+                      seed=seed, oracle_step=math.radians(oracle_step_deg), oracle_frames=oracle_frames)
     return run_dry_run(cfg, spec, Path(out), progress=lambda m: None)
 
 
@@ -121,14 +124,23 @@ def main() -> int:
     ap.add_argument("--modes", default="stop_and_go,continuous")
     ap.add_argument("--seed", type=int, default=0,
                     help="the renders' noise seed: another seed draws fresh frames and boundaries (held-out trials)")
+    ap.add_argument("--oracle-step-deg", type=float, default=math.degrees(ORACLE_STEP),
+                    help="where the oracle judges the boundary: every this many degrees (default 2.25)")
+    ap.add_argument("--oracle-frames", type=int, default=ORACLE_FRAMES,
+                    help="frames the oracle localizes per position (default 3); a cliff at 8-12 inliers is "
+                         "judged more closely with more frames and a finer step")
     ap.add_argument("--resume", action="store_true", help="reuse trials a previous run of the same stage and config "
                     "finished (their summary.json)")
     a = ap.parse_args()
+    if not (math.isfinite(a.oracle_step_deg) and 0 < a.oracle_step_deg <= 45):
+        ap.error(f"--oracle-step-deg must be in (0, 45], got {a.oracle_step_deg:g}")
+    if a.oracle_frames < 1:
+        ap.error(f"--oracle-frames must be >= 1, got {a.oracle_frames}")
     out = Path(a.out)
     scenes = (a.scenes or ",".join(SUITES[a.suite])).split(",")
     labels = trial_labels(scenes)
     trials = [(sc, float(az), mode, a.stage, str(trial_dir(out, f"{labels[sc]}_az{int(float(az)):03d}_{mode}")),
-               a.config, a.resume, a.seed)
+               a.config, a.resume, a.seed, a.oracle_step_deg, a.oracle_frames)
               for sc in scenes for az in a.azimuths.split(",") for mode in a.modes.split(",")]
     print(f"{len(trials)} trials, stage {a.stage}, seed {a.seed}", file=sys.stderr)
     rows = []
@@ -162,7 +174,8 @@ def main() -> int:
                "incursions_by_mode": {m: sum(s["incursion"] for s in rows if s["sampling"] == m)
                                       for m in sorted({s["sampling"] for s in rows})},
                "mean_envelope_usage": sum(usage) / len(usage) if usage else None,
-               "mean_envelope_usage_without_incursion": sum(safe_usage) / len(safe_usage) if safe_usage else None}
+               "mean_envelope_usage_without_incursion": sum(safe_usage) / len(safe_usage) if safe_usage else None,
+               "oracle": {"step_deg": a.oracle_step_deg, "frames": a.oracle_frames}}
     print(json.dumps(summary, indent=1))
     out.mkdir(parents=True, exist_ok=True)
     (out / "trials.json").write_text(json.dumps({"summary": summary, "trials": rows}, indent=1))

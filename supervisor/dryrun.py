@@ -54,6 +54,17 @@ class DryRunSpec:
     oracle: bool = True
     sweep: float | None = None  # rad; the arc ends here (default: the stage's hard limit)
     accept_reachable: bool = False  # an arc the arm cannot complete: run its reachable part (else refused)
+    # The oracle's resolution: where the judged boundary falls between its positions is interpolated, and at
+    # 8-12 inliers a frame's pose is fine or grossly wrong by its noise, so a finer step with more frames
+    # judges such a cliff more closely (at the cost of rendering and localizing them).
+    oracle_step: float = ORACLE_STEP  # rad
+    oracle_frames: int = ORACLE_FRAMES
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.oracle_step) and 0 < self.oracle_step <= math.radians(45.0)):
+            raise ValueError(f"oracle step must be in (0, 45] deg, got {math.degrees(self.oracle_step):g}")
+        if isinstance(self.oracle_frames, bool) or not isinstance(self.oracle_frames, int) or self.oracle_frames < 1:
+            raise ValueError(f"oracle frames must be an integer >= 1, got {self.oracle_frames!r}")
 
 
 def load_motion(path: str | Path) -> dict[str, Any]:
@@ -122,7 +133,7 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
     # The oracle localizes with the model the loop ended with (refined from the robot's motion if enabled).
     renderer = Renderer(scene, cfg.camera.intrinsics) if realtime else drivers.camera.renderer
     oracle = _oracle(cfg, renderer, sup.final_model, plan.path, T0, stage.hard_limit, spec.seed,
-                     scene.reference_point_in_target()) if spec.oracle else None
+                     scene.reference_point_in_target(), spec.oracle_step, spec.oracle_frames) if spec.oracle else None
     summary = _summary(cfg, stage, scene.name, spec, record, executed_theta, oracle, events, drivers.clock.now(),
                        time.monotonic() - wall0, realtime)
     if realtime and sup.last_pacer is not None:
@@ -225,12 +236,8 @@ def run_replay(cfg: Config, dataset: str | Path, stage_name: str, out: Path | No
     if ds.has_ground_truth:
         rows = localize_dataset(ds, model, cfg.localization)
         pos = per_position(rows, "theta")
-        th = np.array([p["var"] for p in pos])
-        te = np.array([p["t_err_mean"] for p in pos])
-        re = np.array([p["r_err_mean"] for p in pos])
-        oracle = {"theta": th.tolist(), "t_err": te.tolist(), "r_err": re.tolist(),
-                  "n_mean": [p["n_mean"] for p in pos],
-                  "boundary": {name: actual_boundary(th, te, re, tt, tr) for name, (tt, tr) in TOLERANCES.items()}}
+        oracle = _oracle_record([float(p["var"]) for p in pos], [float(p["t_err_mean"]) for p in pos],
+                                [float(p["r_err_mean"]) for p in pos], [p["n_mean"] for p in pos])
     spec = DryRunSpec(stage=stage.name, azimuth=azimuth, sampling="stop_and_go", seed=int(ds.meta.get("seed", 0)))
     summary = _summary(cfg, stage, str((ds.meta.get("scene") or {}).get("name", ds.name)), spec, record,
                        executed_theta, oracle, events, clock.now(), time.monotonic() - wall0, False)
@@ -239,10 +246,10 @@ def run_replay(cfg: Config, dataset: str | Path, stage_name: str, out: Path | No
     return summary
 
 
-def oracle_positions(s_max: float) -> np.ndarray:
-    """Where the oracle localizes (SI): every ORACLE_STEP from 0, and `s_max` when it is not one of them."""
-    n = int(math.floor(s_max / ORACLE_STEP + 1e-9)) + 1
-    s = np.arange(n) * ORACLE_STEP
+def oracle_positions(s_max: float, step: float = ORACLE_STEP) -> np.ndarray:
+    """Where the oracle localizes (SI): every `step` from 0, and `s_max` when it is not one of them."""
+    n = int(math.floor(s_max / step + 1e-9)) + 1
+    s = np.arange(n) * step
     return s if s_max - s[-1] <= 1e-9 else np.append(s, s_max)
 
 
@@ -255,18 +262,19 @@ def judged_tolerance(stage) -> tuple[str, float, float]:
 
 
 def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, T0: np.ndarray, s_max: float,
-            seed: int, reference_point: np.ndarray) -> dict[str, Any]:
-    """Per-position mean localization errors along the whole arc (ground truth from the renderer;
-    translation error at the target's reference point): every ORACLE_STEP, and the arc's end `s_max`
+            seed: int, reference_point: np.ndarray, step: float = ORACLE_STEP,
+            frames: int = ORACLE_FRAMES) -> dict[str, Any]:
+    """Per-position mean localization errors over `frames` frames along the whole arc (ground truth from the
+    renderer; translation error at the target's reference point): every `step`, and the arc's end `s_max`
     itself (`cut`'s 30 deg is no multiple of 2.25 deg: without it a boundary never reached would read
     as 29.25 deg, and a halt at the hard limit as an incursion)."""
     loc = Localizer(model, cfg.localization)
     thetas, t_errs, r_errs, n_mean = [], [], [], []
-    for k, s in enumerate(oracle_positions(s_max)):
+    for k, s in enumerate(oracle_positions(s_max, step)):
         T = path.pose(s)
         te, re, ns = [], [], []
-        for i in range(ORACLE_FRAMES):
-            fr = renderer.render(T, frame_index=100_000 + k * ORACLE_FRAMES + i, noise_seed=seed + 7)
+        for i in range(frames):
+            fr = renderer.render(T, frame_index=100_000 + k * frames + i, noise_seed=seed + 7)
             res = loc.localize(fr.image, predict_target_pose(T, T0, model.T_cam0_target))
             ns.append(res.n_inliers)
             if res.ok:
@@ -279,10 +287,14 @@ def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, 
         t_errs.append(float(np.mean(te)))
         r_errs.append(float(np.mean(re)))
         n_mean.append(float(np.mean(ns)))
-    th = np.array(thetas)
-    boundaries = {name: actual_boundary(th, np.array(t_errs), np.array(r_errs), tol_t, tol_r)
-                  for name, (tol_t, tol_r) in TOLERANCES.items()}
-    return {"theta": thetas, "t_err": t_errs, "r_err": r_errs, "n_mean": n_mean, "boundary": boundaries}
+    return {**_oracle_record(thetas, t_errs, r_errs, n_mean), "step": step, "frames": frames}
+
+
+def _oracle_record(theta: list[float], t_err: list[float], r_err: list[float], n_mean: list[float]) -> dict[str, Any]:
+    """The oracle's per-position errors and, from them, the actual boundary at each standard tolerance."""
+    th, te, re = np.array(theta), np.array(t_err), np.array(r_err)
+    return {"theta": theta, "t_err": t_err, "r_err": r_err, "n_mean": n_mean,
+            "boundary": {name: actual_boundary(th, te, re, tt, tr) for name, (tt, tr) in TOLERANCES.items()}}
 
 
 def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_theta: np.ndarray, oracle,
@@ -315,6 +327,8 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
         **({"realtime": True} if realtime else {"simulated_time_s": clock_time}),
     }
     if oracle is not None:
+        if "step" in oracle:  # a rendered oracle (a replay's is the recording's own positions)
+            out["oracle_step_deg"], out["oracle_frames"] = math.degrees(oracle["step"]), oracle["frames"]
         out["actual_boundary_deg"] = {k: math.degrees(v) for k, v in oracle["boundary"].items()}
         # incursion and usage at the stage's own tolerance (cut: 2 mm/3 deg), the others beside them
         name, tol_t, tol_r = judged_tolerance(stage)

@@ -424,6 +424,29 @@ def test_the_oracle_reaches_the_arcs_end_and_judges_at_the_stages_tolerance() ->
     assert (t, r) == pytest.approx((0.002, math.radians(3.0)))
 
 
+def test_the_oracle_can_judge_at_a_finer_step_with_more_frames(tmp_path: Path) -> None:
+    """dryrun_trials --oracle-step-deg/--oracle-frames: the oracle's positions and frames per position are
+    the spec's, and the summary says which oracle judged it (a coarse 15 deg step keeps this test short)."""
+    import math
+
+    from supervisor.config import load_config
+    from supervisor.dryrun import DryRunSpec, oracle_positions, run_dry_run
+
+    fine = oracle_positions(math.radians(30.0), math.radians(0.75))
+    assert len(fine) == 41 and np.allclose(np.diff(fine), math.radians(0.75))
+    for bad in ({"oracle_step": 0.0}, {"oracle_step": math.nan}, {"oracle_frames": 0}, {"oracle_frames": 1.5}):
+        with pytest.raises(ValueError, match="oracle"):
+            DryRunSpec(stage="explore", azimuth=math.radians(90.0), **bad)
+    spec = DryRunSpec(stage="explore", azimuth=math.radians(270.0), sweep=math.radians(4.5),
+                      oracle_step=math.radians(15.0), oracle_frames=2)
+    s = run_dry_run(load_config(None), spec, tmp_path / "out", progress=lambda m: None)
+    assert s["oracle_step_deg"] == pytest.approx(15.0) and s["oracle_frames"] == 2
+    # judged on positions 0, 15, 30, 45 deg only: a boundary is one of them or between two of them
+    assert 0.0 <= s["actual_boundary_judged_deg"] <= 45.0
+    default = DryRunSpec(stage="explore", azimuth=0.0)
+    assert math.degrees(default.oracle_step) == pytest.approx(2.25) and default.oracle_frames == 3
+
+
 def test_dry_run_replay_of_a_recording_without_its_motion(dataset: Path, tmp_path: Path,
                                                           capfd: pytest.CaptureFixture[str]) -> None:
     import json
