@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
-from supervisor.dryrun import ORACLE_FRAMES, ORACLE_STEP  # noqa: E402
+from supervisor.dryrun import ORACLE_FRAMES, ORACLE_STEP, DryRunSpec  # noqa: E402
 
 
 def _trial(args: tuple[str, float, str, str, str, str | None, bool, int, float, int]) -> dict:
@@ -132,10 +132,11 @@ def main() -> int:
     ap.add_argument("--resume", action="store_true", help="reuse trials a previous run of the same stage and config "
                     "finished (their summary.json)")
     a = ap.parse_args()
-    if not (math.isfinite(a.oracle_step_deg) and 0 < a.oracle_step_deg <= 45):
-        ap.error(f"--oracle-step-deg must be in (0, 45], got {a.oracle_step_deg:g}")
-    if a.oracle_frames < 1:
-        ap.error(f"--oracle-frames must be >= 1, got {a.oracle_frames}")
+    try:  # the spec's own check, before any worker starts
+        DryRunSpec(stage=a.stage, azimuth=0.0, oracle_step=math.radians(a.oracle_step_deg),
+                   oracle_frames=a.oracle_frames)
+    except ValueError as exc:
+        ap.error(f"--oracle-step-deg/--oracle-frames: {exc}")
     out = Path(a.out)
     scenes = (a.scenes or ",".join(SUITES[a.suite])).split(",")
     labels = trial_labels(scenes)
