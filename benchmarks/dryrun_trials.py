@@ -9,7 +9,7 @@ OUT/trials.png (halt against actual boundary, per trial and mode).
 
     .venv/bin/python benchmarks/dryrun_trials.py [-o out/trials] [--stage explore] [--jobs 2]
         [--scenes phantom,box,...] [--suite v3] [--azimuths 0,90,270] [--config FILE] [--resume]
-        [--oracle-step-deg 2.25] [--oracle-frames 3]
+        [--oracle-step-deg 2.25] [--oracle-frames 3] [--oracle-refine 3]
 
 Default scenes: those of benchmark suite v3 (`--suite v2` for the previous suite's).
 """
@@ -32,29 +32,31 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
-from supervisor.dryrun import ORACLE_FRAMES, ORACLE_STEP, DryRunSpec  # noqa: E402
+from supervisor.dryrun import ORACLE_FRAMES, ORACLE_REFINE, ORACLE_STEP, DryRunSpec  # noqa: E402
 
 
-def _trial(args: tuple[str, float, str, str, str, str | None, bool, int, float, int]) -> dict:
+def _trial(args: tuple[str, float, str, str, str, str | None, bool, int, float, int, int]) -> dict:
     import cv2
 
     cv2.setNumThreads(1)
     from supervisor.config import load_config
     from supervisor.dryrun import DryRunSpec, run_dry_run
 
-    scene, az, sampling, stage, out, config, resume, seed, oracle_step_deg, oracle_frames = args
+    scene, az, sampling, stage, out, config, resume, seed, oracle_step_deg, oracle_frames, oracle_refine = args
     done = Path(out) / "summary.json"
     if resume and done.is_file():  # a trial an interrupted run finished (same stage, config, seed, oracle: checked)
         s = json.loads(done.read_text())
         if (s.get("stage") == stage and s.get("config_sha256") == load_config(config).sha256
                 and s.get("seed") == seed and s.get("oracle_frames") == oracle_frames
+                and s.get("oracle_refine", 1) == oracle_refine
                 and abs(s.get("oracle_step_deg", math.nan) - oracle_step_deg) < 1e-9):
             return s
     cfg = load_config(config)
     # an arc the arm cannot complete at the stage's top speed runs its reachable part (the summary's
     # max executed angle and halt say where it ended) instead of ending the whole suite
     spec = DryRunSpec(stage=stage, azimuth=math.radians(az), sampling=sampling, scene=scene, accept_reachable=True,
-                      seed=seed, oracle_step=math.radians(oracle_step_deg), oracle_frames=oracle_frames)
+                      seed=seed, oracle_step=math.radians(oracle_step_deg), oracle_frames=oracle_frames,
+                      oracle_refine=oracle_refine)
     return run_dry_run(cfg, spec, Path(out), progress=lambda m: None)
 
 
@@ -129,19 +131,22 @@ def main() -> int:
     ap.add_argument("--oracle-frames", type=int, default=ORACLE_FRAMES,
                     help="frames the oracle localizes per position (default 3); a cliff at 8-12 inliers is "
                          "judged more closely with more frames and a finer step")
+    ap.add_argument("--oracle-refine", type=int, default=ORACLE_REFINE,
+                    help="sample the step before the first position beyond the tolerance again this many times "
+                         "finer (default 3; 1: not at all)")
     ap.add_argument("--resume", action="store_true", help="reuse trials a previous run of the same stage and config "
                     "finished (their summary.json)")
     a = ap.parse_args()
     try:  # the spec's own check, before any worker starts
         DryRunSpec(stage=a.stage, azimuth=0.0, oracle_step=math.radians(a.oracle_step_deg),
-                   oracle_frames=a.oracle_frames)
+                   oracle_frames=a.oracle_frames, oracle_refine=a.oracle_refine)
     except ValueError as exc:
-        ap.error(f"--oracle-step-deg/--oracle-frames: {exc}")
+        ap.error(f"--oracle-step-deg/--oracle-frames/--oracle-refine: {exc}")
     out = Path(a.out)
     scenes = (a.scenes or ",".join(SUITES[a.suite])).split(",")
     labels = trial_labels(scenes)
     trials = [(sc, float(az), mode, a.stage, str(trial_dir(out, f"{labels[sc]}_az{int(float(az)):03d}_{mode}")),
-               a.config, a.resume, a.seed, a.oracle_step_deg, a.oracle_frames)
+               a.config, a.resume, a.seed, a.oracle_step_deg, a.oracle_frames, a.oracle_refine)
               for sc in scenes for az in a.azimuths.split(",") for mode in a.modes.split(",")]
     print(f"{len(trials)} trials, stage {a.stage}, seed {a.seed}", file=sys.stderr)
     rows = []
@@ -176,7 +181,7 @@ def main() -> int:
                                       for m in sorted({s["sampling"] for s in rows})},
                "mean_envelope_usage": sum(usage) / len(usage) if usage else None,
                "mean_envelope_usage_without_incursion": sum(safe_usage) / len(safe_usage) if safe_usage else None,
-               "oracle": {"step_deg": a.oracle_step_deg, "frames": a.oracle_frames}}
+               "oracle": {"step_deg": a.oracle_step_deg, "frames": a.oracle_frames, "refine": a.oracle_refine}}
     print(json.dumps(summary, indent=1))
     out.mkdir(parents=True, exist_ok=True)
     (out / "trials.json").write_text(json.dumps({"summary": summary, "trials": rows}, indent=1))

@@ -28,7 +28,7 @@ from supervisor.arm.kinematics import PandaKinematics
 from supervisor.clock import SimClock
 from supervisor.config import Config
 from supervisor.errors import ConfigError
-from supervisor.evaluation.metrics import actual_boundary
+from supervisor.evaluation.metrics import actual_boundary, first_exceeded
 from supervisor.geometry import pose_error
 from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.localizer import Localizer, predict_target_pose
@@ -42,6 +42,7 @@ from supervisor.stages import StageConfig
 TOLERANCES = {"2mm_3deg": (0.002, math.radians(3.0)), "4mm_10deg": (0.004, math.radians(10.0))}
 ORACLE_STEP = math.radians(2.25)
 ORACLE_FRAMES = 3
+ORACLE_REFINE = 3  # the step before the first exceeded position is sampled again this many times finer
 
 
 @dataclass(frozen=True)
@@ -57,14 +58,19 @@ class DryRunSpec:
     # The oracle's resolution: where the judged boundary falls between its positions is interpolated, and at
     # 8-12 inliers a frame's pose is fine or grossly wrong by its noise, so a finer step with more frames
     # judges such a cliff more closely (at the cost of rendering and localizing them).
+    # The boundary lies in the step before the first position beyond a tolerance; `oracle_refine` samples
+    # that step again `oracle_refine` times finer (1: not at all), at each tolerance the run is judged at.
     oracle_step: float = ORACLE_STEP  # rad
     oracle_frames: int = ORACLE_FRAMES
+    oracle_refine: int = ORACLE_REFINE
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.oracle_step) and 0 < self.oracle_step <= math.radians(45.0)):
             raise ValueError(f"oracle step must be in (0, 45] deg, got {math.degrees(self.oracle_step):g}")
         if isinstance(self.oracle_frames, bool) or not isinstance(self.oracle_frames, int) or self.oracle_frames < 1:
             raise ValueError(f"oracle frames must be an integer >= 1, got {self.oracle_frames!r}")
+        if isinstance(self.oracle_refine, bool) or not isinstance(self.oracle_refine, int) or self.oracle_refine < 1:
+            raise ValueError(f"oracle refine must be an integer >= 1, got {self.oracle_refine!r}")
 
 
 def load_motion(path: str | Path) -> dict[str, Any]:
@@ -132,8 +138,10 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
     executed_theta = _report_run(record, drivers, T0, progress)
     # The oracle localizes with the model the loop ended with (refined from the robot's motion if enabled).
     renderer = Renderer(scene, cfg.camera.intrinsics) if realtime else drivers.camera.renderer
+    _, tol_t, tol_r = judged_tolerance(stage)
     oracle = _oracle(cfg, renderer, sup.final_model, plan.path, T0, stage.hard_limit, spec.seed,
-                     scene.reference_point_in_target(), spec.oracle_step, spec.oracle_frames) if spec.oracle else None
+                     scene.reference_point_in_target(), spec.oracle_step, spec.oracle_frames, spec.oracle_refine,
+                     [*TOLERANCES.values(), (tol_t, tol_r)]) if spec.oracle else None
     summary = _summary(cfg, stage, scene.name, spec, record, executed_theta, oracle, events, drivers.clock.now(),
                        time.monotonic() - wall0, realtime)
     if realtime and sup.last_pacer is not None:
@@ -167,6 +175,15 @@ def _write_outputs(out: Path | None, summary: dict[str, Any], record: RunRecord,
     tmp = out / ".summary.json.tmp"
     tmp.write_text(json.dumps(summary, indent=2, sort_keys=True))
     tmp.replace(out / "summary.json")
+    if oracle is not None:  # the judge's evidence: each position's mean errors (refined: a position sampled again)
+        refined = oracle.get("refined") or [False] * len(oracle["theta"])
+        rows = ["theta_deg,t_err_mm,r_err_deg,n_inliers_mean,refined"]
+        rows += [f"{math.degrees(th):.4f},{1000 * te:.4f},{math.degrees(re):.4f},{n:.2f},{int(f)}"
+                 for th, te, re, n, f in zip(oracle["theta"], oracle["t_err"], oracle["r_err"], oracle["n_mean"],
+                                             refined)]
+        tmp = out / ".oracle.csv.tmp"
+        tmp.write_text("\n".join(rows) + "\n")
+        tmp.replace(out / "oracle.csv")
     from supervisor.runtime.plots import plot_timeline
 
     plot_timeline(record, oracle, summary, out / "timeline.png")
@@ -261,20 +278,36 @@ def judged_tolerance(stage) -> tuple[str, float, float]:
     return "4mm_10deg", *TOLERANCES["4mm_10deg"]
 
 
+def refine_positions(s: np.ndarray, t_err: np.ndarray, r_err: np.ndarray,
+                     tolerances: list[tuple[float, float]], refine: int) -> list[float]:
+    """Where the oracle samples again (SI, ascending): for each tolerance, `refine - 1` evenly spaced positions
+    inside the step before its first exceeded position (`s` ascending). Between two positions the boundary is
+    only interpolated; at a cliff (a pose 0.5 mm off, then 6.7 mm a step later) the interpolation can sit a
+    degree or more from where the error actually crosses, either side of it."""
+    out: set[float] = set()
+    for tol_t, tol_r in tolerances if refine > 1 else ():
+        k = first_exceeded(t_err, r_err, tol_t, tol_r)
+        if k:  # None: never exceeded; 0: exceeded at the start, nothing before it
+            a, b = float(s[k - 1]), float(s[k])
+            out.update(a + j * (b - a) / refine for j in range(1, refine))
+    return sorted(out)
+
+
 def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, T0: np.ndarray, s_max: float,
-            seed: int, reference_point: np.ndarray, step: float = ORACLE_STEP,
-            frames: int = ORACLE_FRAMES) -> dict[str, Any]:
+            seed: int, reference_point: np.ndarray, step: float = ORACLE_STEP, frames: int = ORACLE_FRAMES,
+            refine: int = 1, tolerances: list[tuple[float, float]] | None = None) -> dict[str, Any]:
     """Per-position mean localization errors over `frames` frames along the whole arc (ground truth from the
     renderer; translation error at the target's reference point): every `step`, and the arc's end `s_max`
     itself (`cut`'s 30 deg is no multiple of 2.25 deg: without it a boundary never reached would read
-    as 29.25 deg, and a halt at the hard limit as an incursion)."""
+    as 29.25 deg, and a halt at the hard limit as an incursion); then the step before each of `tolerances`'
+    first exceeded position again, `refine` times finer (refine_positions)."""
     loc = Localizer(model, cfg.localization)
-    thetas, t_errs, r_errs, n_mean = [], [], [], []
-    for k, s in enumerate(oracle_positions(s_max, step)):
+
+    def measure(s: float, first_frame: int) -> tuple[float, float, float, float]:
         T = path.pose(s)
         te, re, ns = [], [], []
         for i in range(frames):
-            fr = renderer.render(T, frame_index=100_000 + k * frames + i, noise_seed=seed + 7)
+            fr = renderer.render(T, frame_index=first_frame + i, noise_seed=seed + 7)
             res = loc.localize(fr.image, predict_target_pose(T, T0, model.T_cam0_target))
             ns.append(res.n_inliers)
             if res.ok:
@@ -283,11 +316,20 @@ def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, 
                 e_t, e_r = math.inf, math.inf  # a failed localization exceeds every tolerance
             te.append(e_t)
             re.append(e_r)
-        thetas.append(viewing_angle(T0, T))
-        t_errs.append(float(np.mean(te)))
-        r_errs.append(float(np.mean(re)))
-        n_mean.append(float(np.mean(ns)))
-    return {**_oracle_record(thetas, t_errs, r_errs, n_mean), "step": step, "frames": frames}
+        return viewing_angle(T0, T), float(np.mean(te)), float(np.mean(re)), float(np.mean(ns))
+
+    coarse = oracle_positions(s_max, step)
+    rows = [(float(s), *measure(s, 100_000 + k * frames), False) for k, s in enumerate(coarse)]
+    extra = refine_positions(coarse, np.array([r[2] for r in rows]), np.array([r[3] for r in rows]),
+                             list(tolerances or TOLERANCES.values()), refine)
+    for s in extra:  # frames of their own: slot j of the step after coarse position k
+        k = int(np.searchsorted(coarse, s)) - 1
+        j = round((s - coarse[k]) * refine / (coarse[k + 1] - coarse[k]))
+        rows.append((s, *measure(s, 300_000 + (k * refine + j) * frames), True))
+    rows.sort(key=lambda r: r[0])
+    _, thetas, t_errs, r_errs, n_mean, refined = (list(c) for c in zip(*rows))
+    return {**_oracle_record(thetas, t_errs, r_errs, n_mean), "step": step, "frames": frames, "refine": refine,
+            "refined": refined}
 
 
 def _oracle_record(theta: list[float], t_err: list[float], r_err: list[float], n_mean: list[float]) -> dict[str, Any]:
@@ -329,6 +371,7 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
     if oracle is not None:
         if "step" in oracle:  # a rendered oracle (a replay's is the recording's own positions)
             out["oracle_step_deg"], out["oracle_frames"] = math.degrees(oracle["step"]), oracle["frames"]
+            out["oracle_refine"] = oracle["refine"]
         out["actual_boundary_deg"] = {k: math.degrees(v) for k, v in oracle["boundary"].items()}
         # incursion and usage at the stage's own tolerance (cut: 2 mm/3 deg), the others beside them
         name, tol_t, tol_r = judged_tolerance(stage)

@@ -424,6 +424,24 @@ def test_the_oracle_reaches_the_arcs_end_and_judges_at_the_stages_tolerance() ->
     assert (t, r) == pytest.approx((0.002, math.radians(3.0)))
 
 
+def test_the_oracle_samples_the_step_before_each_tolerances_first_exceeded_position_again() -> None:
+    import math
+
+    from supervisor.dryrun import refine_positions
+
+    s = np.radians([0.0, 2.25, 4.5, 6.75, 9.0])
+    t = np.array([0.0005, 0.001, 0.003, 0.006, 0.009])  # 2 mm exceeded at 4.5 deg, 4 mm at 6.75 deg
+    r = np.zeros(5)
+    tols = [(0.002, math.radians(3.0)), (0.004, math.radians(10.0))]
+    assert np.degrees(refine_positions(s, t, r, tols, 3)) == pytest.approx([3.0, 3.75, 5.25, 6.0])
+    # the same step for both tolerances: sampled once
+    assert np.degrees(refine_positions(s, t, r, tols + [(0.002, 1.0)], 3)) == pytest.approx([3.0, 3.75, 5.25, 6.0])
+    assert refine_positions(s, t, r, tols, 1) == []  # refine 1: not at all
+    assert refine_positions(s, t, r, [(0.0001, 1.0)], 3) == []  # exceeded at the start: no step before it
+    assert refine_positions(s, t, r, [(0.1, 1.0)], 3) == []  # never exceeded
+    assert np.degrees(refine_positions(s[:4], t[:4], r[:4], [(0.004, 1.0)], 2)) == pytest.approx([5.625])
+
+
 def test_the_oracle_can_judge_at_a_finer_step_with_more_frames(tmp_path: Path) -> None:
     """dryrun_trials --oracle-step-deg/--oracle-frames: the oracle's positions and frames per position are
     the spec's, and the summary says which oracle judged it (a coarse 15 deg step keeps this test short)."""
@@ -431,20 +449,34 @@ def test_the_oracle_can_judge_at_a_finer_step_with_more_frames(tmp_path: Path) -
 
     from supervisor.config import load_config
     from supervisor.dryrun import DryRunSpec, oracle_positions, run_dry_run
+    from supervisor.evaluation.metrics import actual_boundary
 
     fine = oracle_positions(math.radians(30.0), math.radians(0.75))
     assert len(fine) == 41 and np.allclose(np.diff(fine), math.radians(0.75))
     for bad in ({"oracle_step": 0.0}, {"oracle_step": math.nan}, {"oracle_frames": 0}, {"oracle_frames": 1.5}):
         with pytest.raises(ValueError, match="oracle"):
             DryRunSpec(stage="explore", azimuth=math.radians(90.0), **bad)
+    with pytest.raises(ValueError, match="oracle refine"):
+        DryRunSpec(stage="explore", azimuth=0.0, oracle_refine=0)
     spec = DryRunSpec(stage="explore", azimuth=math.radians(270.0), sweep=math.radians(4.5),
-                      oracle_step=math.radians(15.0), oracle_frames=2)
+                      oracle_step=math.radians(15.0), oracle_frames=2, oracle_refine=3)
     s = run_dry_run(load_config(None), spec, tmp_path / "out", progress=lambda m: None)
-    assert s["oracle_step_deg"] == pytest.approx(15.0) and s["oracle_frames"] == 2
-    # judged on positions 0, 15, 30, 45 deg only: a boundary is one of them or between two of them
-    assert 0.0 <= s["actual_boundary_judged_deg"] <= 45.0
+    assert s["oracle_step_deg"] == pytest.approx(15.0) and s["oracle_frames"] == 2 and s["oracle_refine"] == 3
+    # judged on 0, 15, 30, 45 deg and, 3 times finer, the step before each tolerance's first exceeded position
+    rows = np.genfromtxt(tmp_path / "out" / "oracle.csv", delimiter=",", names=True)
+    coarse, fine = rows[rows["refined"] == 0], rows[rows["refined"] == 1]
+    assert len(coarse) == 4 and 2 <= len(fine) <= 4 and len(fine) % 2 == 0
+    assert np.all(np.diff(rows["theta_deg"]) > 0)
+    for tol_mm, tol_deg in ((2.0, 3.0), (4.0, 10.0)):
+        k = int(np.argmax((coarse["t_err_mm"] > tol_mm) | (coarse["r_err_deg"] > tol_deg)))
+        inside = fine[(fine["theta_deg"] > coarse["theta_deg"][k - 1]) & (fine["theta_deg"] < coarse["theta_deg"][k])]
+        assert k > 0 and len(inside) == 2  # exceeded on this arc before its end, not at its start
+    judged = actual_boundary(np.radians(rows["theta_deg"]), rows["t_err_mm"] / 1000, np.radians(rows["r_err_deg"]),
+                             0.004, math.radians(10.0))
+    assert s["actual_boundary_judged_deg"] == pytest.approx(math.degrees(judged), abs=1e-3)
     default = DryRunSpec(stage="explore", azimuth=0.0)
     assert math.degrees(default.oracle_step) == pytest.approx(2.25) and default.oracle_frames == 3
+    assert default.oracle_refine == 3
 
 
 def test_dry_run_replay_of_a_recording_without_its_motion(dataset: Path, tmp_path: Path,

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from supervisor.evaluation.metrics import actual_boundary, incursion_rate, max_mean_spl_zero_incursion, sweep
+from supervisor.evaluation.metrics import (actual_boundary, first_exceeded, incursion_rate, max_mean_spl_zero_incursion,
+                                          sweep)
 
 
 def test_actual_boundary_sorts_positions_and_takes_the_earlier_quantity():
@@ -19,6 +20,16 @@ def test_actual_boundary_sorts_positions_and_takes_the_earlier_quantity():
     assert actual_boundary(x, t, np.array([0, 0, math.nan, 0]), 0.0025, 0.1) == pytest.approx(2.0)  # NaN = lost
     with pytest.raises(ValueError):
         actual_boundary(np.array([]), np.array([]), np.array([]), 0.002, 0.05)
+
+
+def test_first_exceeded_is_the_first_position_beyond_either_quantity():
+    t = np.array([0.001, 0.002, 0.003, 0.005])
+    r = np.array([0.0, 0.0, 0.2, 0.0])
+    assert first_exceeded(t, r, 0.004, 1.0) == 3
+    assert first_exceeded(t, r, 0.004, 0.1) == 2  # rotation first
+    assert first_exceeded(t, np.array([0.0, math.nan, 0.0, 0.0]), 0.004, 1.0) == 1  # NaN = lost frames
+    assert first_exceeded(np.array([math.inf, 0.0]), np.zeros(2), 0.004, 1.0) == 0
+    assert first_exceeded(t, r, 0.01, 1.0) is None
 
 
 def test_incursion_counts_only_strict_overshoot():

@@ -43,6 +43,13 @@ def actual_boundary(x: np.ndarray, mean_t_err: np.ndarray, mean_r_err: np.ndarra
     return best
 
 
+def first_exceeded(mean_t_err: np.ndarray, mean_r_err: np.ndarray, tol_t: float, tol_r: float) -> int | None:
+    """Index of the first position (in the order given) whose mean error exceeds the tolerance, translation
+    OR rotation (NaN counts as exceeded); None when none does."""
+    bad = ~((np.asarray(mean_t_err, float) <= tol_t) & (np.asarray(mean_r_err, float) <= tol_r))
+    return int(np.argmax(bad)) if bad.any() else None
+
+
 def spl(predicted: float, actual: float) -> float:
     """Safe path length: min(theta_p, theta_a)."""
     return min(predicted, actual)
