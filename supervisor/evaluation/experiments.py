@@ -40,7 +40,8 @@ from supervisor.dataset.format import Dataset
 from supervisor.errors import DatasetError
 from supervisor.evaluation.cache import localized
 from supervisor.outputs import prepare_incremental
-from supervisor.evaluation.metrics import CurvePoint, actual_boundary, max_mean_spl_zero_incursion, spl
+from supervisor.evaluation.metrics import (CurvePoint, actual_boundary, incursion_rate, max_mean_spl_zero_incursion,
+                                          spl)
 from supervisor.prediction.emg import ANGLE, TRANSLATION
 from supervisor.prediction.errorbound import ERR_SPAN, KAPPAS, ErrorTrend, log_margin, position_log_sd
 from supervisor.prediction.mlp import MLPPredictor
@@ -321,7 +322,7 @@ def _curves(results: list[DatasetResult], kind: str) -> dict[str, Any]:
                 stops = [op if system == "static" else _stop(r, system, i, tol) for r in res]
                 pairs = list(zip(stops, actual))
                 curve.append(CurvePoint(float(i), float(np.mean([spl(p, a) for p, a in pairs])),
-                                        sum(p > a + 1e-9 for p, a in pairs) / len(pairs), tuple(stops)))
+                                        incursion_rate(pairs), tuple(stops)))
             best = max_mean_spl_zero_incursion(curve)
             op_scale = unit_scale if system == "static" else 1.0
 

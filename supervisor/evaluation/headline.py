@@ -17,9 +17,9 @@ from __future__ import annotations
 import math
 from typing import Any, Iterable, Mapping
 
-from supervisor.evaluation.tune import _EPS
+from supervisor.evaluation.metrics import INCURSION_EPS
 
-_EPS_DEG = math.degrees(_EPS)  # the replay's incursion tolerance (rad there), for the reports' degrees
+_EPS_DEG = math.degrees(INCURSION_EPS)  # the replay's incursion tolerance (rad there), for the reports' degrees
 
 
 def _arcs(report: Mapping[str, Any], scenes: frozenset[str] | None) -> list[dict[str, Any]]:

@@ -12,6 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 
 
+INCURSION_EPS = 1e-9  # a stop counts as an incursion only beyond the boundary by more than this (rad or m)
+
+
 def actual_boundary(x: np.ndarray, mean_t_err: np.ndarray, mean_r_err: np.ndarray, tol_t: float,
                     tol_r: float) -> float:
     """theta_a: where the mean error per position first exceeds the tolerance (translation OR rotation).
@@ -55,7 +58,7 @@ def spl(predicted: float, actual: float) -> float:
     return min(predicted, actual)
 
 
-def incursion_rate(pairs: Sequence[tuple[float, float]], eps: float = 1e-9) -> float:
+def incursion_rate(pairs: Sequence[tuple[float, float]], eps: float = INCURSION_EPS) -> float:
     """R_i = I / n, I = trials with theta_p > theta_a."""
     if not pairs:
         raise ValueError("no trials")

@@ -45,6 +45,7 @@ import yaml
 from supervisor.config import Config
 from supervisor.errors import ConfigError, DatasetError
 from supervisor.evaluation.experiments import N_T, TOLERANCES, DatasetResult, evaluate_suite
+from supervisor.evaluation.metrics import INCURSION_EPS
 from supervisor.localization.offline import write_atomic
 from supervisor.paths import DEFAULT_CONFIG
 from supervisor.prediction.errorbound import KAPPAS
@@ -52,7 +53,6 @@ from supervisor.prediction.models import VARIANTS
 
 GUARD_FRACTIONS = (0.25, 0.5, 0.75, 1.0, 0.0)  # of the tolerance; 0 = guard off (conservative first)
 SLACKS = tuple(math.radians(d) for d in (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0))  # robust choice: required margin
-_EPS = 1e-9
 
 
 @dataclass(frozen=True)
@@ -101,9 +101,9 @@ class Grid:
         if len(cols) == 0:
             return None
         s, a = self.stops[:, cols], self.actual[cols]
-        open_end = a >= self.x_end[cols] - _EPS  # no boundary inside the arc: only passing the end incurs
+        open_end = a >= self.x_end[cols] - INCURSION_EPS  # no boundary inside the arc: only passing the end incurs
         need = np.where(open_end, a, a - slack)
-        safe = ~np.any(s > need + _EPS, axis=1)
+        safe = ~np.any(s > need + INCURSION_EPS, axis=1)
         if not safe.any():
             return None
         mean_spl = np.mean(np.minimum(s, a), axis=1)
@@ -123,7 +123,7 @@ class Grid:
             for sc in scenes:
                 test, train = cols[scene_of[cols] == sc], cols[scene_of[cols] != sc]
                 i = self.choose(train, sl)
-                if i is None or np.any(self.stops[i, test] > self.actual[test] + _EPS):
+                if i is None or np.any(self.stops[i, test] > self.actual[test] + INCURSION_EPS):
                     ok = False
                     break
             if ok:
@@ -230,14 +230,14 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
         folds.append({"held_out": sc, "chosen": None if i is None else grid.points[i].describe(),
                       "arcs": [{"name": arcs[j].name, "stop_deg": held_stops[j] * deg,
                                 "actual_deg": grid.actual[j] * deg,
-                                "incursion": bool(held_stops[j] > grid.actual[j] + _EPS)} for j in test],
+                                "incursion": bool(held_stops[j] > grid.actual[j] + INCURSION_EPS)} for j in test],
                       "slack_deg": sl * deg, "static_envelope_deg": env * deg})
         progress(f"  held out {sc:<24} chose {folds[-1]['chosen']}: "
                  + ", ".join(f"{a['stop_deg']:.1f}/{a['actual_deg']:.1f}" for a in folds[-1]["arcs"]))
 
     def summary(stops: np.ndarray) -> dict[str, float]:
-        return {"incursion_rate": float(np.mean(stops > grid.actual + _EPS)),
-                "incursions": int(np.sum(stops > grid.actual + _EPS)),
+        return {"incursion_rate": float(np.mean(stops > grid.actual + INCURSION_EPS)),
+                "incursions": int(np.sum(stops > grid.actual + INCURSION_EPS)),
                 "mean_spl_deg": float(np.mean(np.minimum(stops, grid.actual))) * deg,
                 # the dry-run's envelope usage, per arc: how much of the actual envelope the stop used
                 "mean_usage": float(np.mean(np.minimum(stops, grid.actual) / np.maximum(grid.actual, 1e-9)))}
