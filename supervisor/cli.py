@@ -239,7 +239,8 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
               f"{ab['2mm_3deg']:.2f} deg at 2 mm/3 deg; at the stage's {s['judged_tolerance']} "
               f"{s['actual_boundary_judged_deg']:.2f} deg: incursion: {'YES' if s['incursion'] else 'no'}; "
               f"envelope usage {100 * s['envelope_usage']:.0f}%")
-    print(f"wrote {out / 'summary.json'}, {out / 'events.jsonl'}, {out / 'timeline.png'}")
+    print(f"wrote {out / 'summary.json'}, {out / 'events.jsonl'}, {out / 'timeline.png'}"
+          + (f", {out / 'oracle.csv'}" if "actual_boundary_deg" in s else ""))
     return 0
 
 
@@ -337,7 +338,7 @@ def cmd_can_monitor(args: argparse.Namespace) -> int:
     return 1 if trip else 0
 
 
-DRY_RUN_FILES = ("summary.json", "events.jsonl", "timeline.png")
+DRY_RUN_FILES = ("summary.json", "events.jsonl", "timeline.png", "oracle.csv")
 
 
 def cmd_calibrate_intrinsics(args: argparse.Namespace) -> int:

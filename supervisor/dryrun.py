@@ -5,7 +5,8 @@ model images 2 cm apart, build the target model, return to the start view, then
 run one gated arc with the configured stage. Afterwards an *oracle sweep*
 (rendered frames along the full arc, localized with the same model, compared
 with ground truth) gives the actual envelope boundary the halt is judged
-against. Outputs: `summary.json`, `events.jsonl`, `timeline.png`.
+against (`oracle.csv`: each position's mean errors). Outputs: `summary.json`, `events.jsonl`, `timeline.png`,
+`oracle.csv`.
 """
 
 from __future__ import annotations

@@ -401,7 +401,7 @@ def test_dry_run_replays_a_recording_through_the_loop(dataset: Path, tmp_path: P
     # judged at the stage's own tolerance (explore: 4 mm/10 deg)
     assert s["judged_tolerance"] == "4mm_10deg"
     assert s["actual_boundary_judged_deg"] == pytest.approx(s["actual_boundary_deg"]["4mm_10deg"])
-    assert (out / "timeline.png").is_file() and (out / "events.jsonl").is_file()
+    assert (out / "timeline.png").is_file() and (out / "events.jsonl").is_file() and (out / "oracle.csv").is_file()
 
 
 def test_the_oracle_reaches_the_arcs_end_and_judges_at_the_stages_tolerance() -> None:
@@ -526,6 +526,7 @@ def test_dry_run_motion_file_sets_azimuth_and_sweep(tmp_path: Path) -> None:
     s = json.loads((out / "summary.json").read_text())
     assert s["azimuth_deg"] == pytest.approx(270.0)
     assert s["halt_reason"] == "end_of_path" and s["halt_angle_deg"] == pytest.approx(4.5, abs=1e-6)
+    assert not (out / "oracle.csv").exists()  # no oracle, no judge's evidence
 
 
 @pytest.mark.parametrize(("text", "words"), [
