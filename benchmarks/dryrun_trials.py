@@ -182,6 +182,12 @@ def main() -> int:
                "mean_envelope_usage": sum(usage) / len(usage) if usage else None,
                "mean_envelope_usage_without_incursion": sum(safe_usage) / len(safe_usage) if safe_usage else None,
                "oracle": {"step_deg": a.oracle_step_deg, "frames": a.oracle_frames, "refine": a.oracle_refine}}
+    # the same trials by the oracle's coarse positions alone (a trial with nothing refined: its own verdict)
+    coarse = [s.get("coarse_judge") or {"incursion": s["incursion"], "envelope_usage": s["envelope_usage"]}
+              for s in rows]
+    c_usage = [c["envelope_usage"] for c in coarse if c["envelope_usage"] is not None]
+    summary["coarse_judge"] = {"incursions": sum(c["incursion"] for c in coarse),
+                               "mean_envelope_usage": sum(c_usage) / len(c_usage) if c_usage else None}
     print(json.dumps(summary, indent=1))
     out.mkdir(parents=True, exist_ok=True)
     (out / "trials.json").write_text(json.dumps({"summary": summary, "trials": rows}, indent=1))

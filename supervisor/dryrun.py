@@ -383,5 +383,11 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
         out["incursion"] = bool(max_exec > a + 1e-9)
         out["envelope_usage"] = float(halt / a) if a > 0 else None
         out["incursion_by_tolerance"] = {k: bool(max_exec > v + 1e-9) for k, v in oracle["boundary"].items()}
+        if any(oracle.get("refined") or ()):  # what the judge would say on its coarse positions alone, beside it
+            keep = ~np.asarray(oracle["refined"], bool)
+            c = actual_boundary(np.asarray(oracle["theta"])[keep], np.asarray(oracle["t_err"])[keep],
+                                np.asarray(oracle["r_err"])[keep], tol_t, tol_r)
+            out["coarse_judge"] = {"actual_boundary_deg": math.degrees(c), "incursion": bool(max_exec > c + 1e-9),
+                                   "envelope_usage": float(halt / c) if c > 0 else None}
     return out
 

@@ -474,6 +474,11 @@ def test_the_oracle_can_judge_at_a_finer_step_with_more_frames(tmp_path: Path) -
     judged = actual_boundary(np.radians(rows["theta_deg"]), rows["t_err_mm"] / 1000, np.radians(rows["r_err_deg"]),
                              0.004, math.radians(10.0))
     assert s["actual_boundary_judged_deg"] == pytest.approx(math.degrees(judged), abs=1e-3)
+    # beside it, the verdict on the coarse positions alone (the judge before refining)
+    by_coarse = actual_boundary(np.radians(coarse["theta_deg"]), coarse["t_err_mm"] / 1000,
+                                np.radians(coarse["r_err_deg"]), 0.004, math.radians(10.0))
+    assert s["coarse_judge"]["actual_boundary_deg"] == pytest.approx(math.degrees(by_coarse), abs=1e-3)
+    assert s["coarse_judge"]["envelope_usage"] == pytest.approx(s["halt_angle_deg"] / math.degrees(by_coarse), rel=1e-4)
     default = DryRunSpec(stage="explore", azimuth=0.0)
     assert math.degrees(default.oracle_step) == pytest.approx(2.25) and default.oracle_frames == 3
     assert default.oracle_refine == 3
