@@ -44,8 +44,13 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
         ax2.plot([math.degrees(s.theta) for s in record.samples], [s.n_inliers for s in record.samples], "o",
                  ms=3, color="tab:blue", label="n_i (run)")
     if oracle is not None:
-        ax2.plot(np.degrees(oracle["theta"]), oracle["n_mean"], "s", ms=3, color="tab:gray", alpha=0.6,
-                 label="n_i (oracle sweep, mean)")
+        o_theta = np.degrees(np.asarray(oracle["theta"], float))
+        # A refined position is one the judge sampled again inside a failing step; drawn apart from the sweep.
+        o_refined = np.asarray(oracle.get("refined") or [False] * len(o_theta), bool)
+        for mask, marker, label in ((~o_refined, "s", "oracle sweep"), (o_refined, "D", "oracle, refined step")):
+            if mask.any():
+                ax2.plot(o_theta[mask], np.asarray(oracle["n_mean"], float)[mask], marker, ms=3, color="tab:gray",
+                         alpha=0.6, mfc="none" if marker == "D" else None, label=f"n_i ({label}, mean)")
     x = np.linspace(0.0, max(45.0, summary.get("halt_angle_deg") or 0.0), 300)
     fits = [f for f in record.fits if f["valid"] and f["params"] is not None]
     for k, f in enumerate(fits):
@@ -68,9 +73,11 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
         ax3.plot(d[:, 0], d[:, 1], "o-", ms=3, color="tab:blue", label="target-pose drift (run, step mean)")
     if oracle is not None:
         te = np.array(oracle["t_err"], float) * 1000
-        ok = np.isfinite(te)
-        ax3.plot(np.degrees(np.asarray(oracle["theta"]))[ok], te[ok], "s", ms=3, color="tab:gray", alpha=0.7,
-                 label="true translation error (oracle sweep, mean)")
+        for mask, marker, label in ((~o_refined, "s", "oracle sweep"), (o_refined, "D", "oracle, refined step")):
+            ok = mask & np.isfinite(te)
+            if ok.any():
+                ax3.plot(o_theta[ok], te[ok], marker, ms=3, color="tab:gray", alpha=0.7,
+                         mfc="none" if marker == "D" else None, label=f"true translation error ({label}, mean)")
     limit = summary.get("consistency_limit_mm")
     if limit:
         ax3.axhline(limit, color="tab:red", ls="--", lw=0.8, label="guard limit")
