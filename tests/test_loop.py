@@ -141,6 +141,8 @@ def test_continuous_allowance_never_runs_more_than_a_step_ahead_of_the_samples(c
     for e in events:
         if e["kind"] == "localization":
             furthest = max(furthest, e["theta_deg"])
+            # each result logs its matches beside its inliers (the inlier ratio, RANSAC's margin)
+            assert e["status"] != "OK" or e["n_matches"] >= e["n_inliers"] > 0, e
         elif e["kind"] == "prediction" and e["valid"] and e["s_deg"] >= 3.0 - 1e-9:  # past the warm-up
             assert e["theta_allowed_deg"] <= furthest + 1.5 + 1e-6, e
             checked += 1

@@ -364,7 +364,7 @@ class SupervisorLoop:
             if self.observer is not None:
                 self._hook("observer.result", self.observer.result, jr)
             self.events.emit(now, "localization", step=job.step, frame_t=job.t, theta_deg=math.degrees(theta),
-                             n_inliers=res.n_inliers, status=res.status.name,
+                             n_inliers=res.n_inliers, n_matches=res.n_matches, status=res.status.name,
                              latency_ms=(jr.ready_t - job.t) * 1000)
         self._emit_notes(now)
 
