@@ -69,7 +69,7 @@ def _physical(codec: Codec, name: str, signal: str, value):
     ("heartbeat", {"State": "idle", "Stage": 256, "Fault": 0}, "Stage"),
     ("heartbeat", {"State": "idle", "Stage": 0, "Fault": 2}, "Fault"),
     ("heartbeat", {"State": "idle", "Stage": -1, "Fault": 0}, "Stage"),
-    ("stop", {"Reason": 9}, "Reason"),
+    ("stop", {"Reason": 10}, "Reason"),
     ("external_stop", {"Stop": 2}, "Stop"),
     ("status", {"Theta": 655.36, "ThetaAllowed": 1.0, "NInliers": 0}, "Theta"),
     ("status", {"Theta": 1.0, "ThetaAllowed": -0.01, "NInliers": 0}, "ThetaAllowed"),
@@ -97,6 +97,12 @@ def test_stop_reason_codes_cover_the_loop_halt_reasons():
     assert stop_reason_code("something new") == "other"
     assert set(STOP_REASONS) >= {"boundary", "consistency", "error_bound"} and "moving" in STATES
     assert stop_reason_code("error_bound") == "error_bound"
+    assert stop_reason_code("inlier_ratio") == "inlier_ratio"
+    # every reason the loop can send is one the shipped DBC names, and it goes through the wire and back
+    codec = Codec()
+    for reason in STOP_REASONS:
+        _, data = codec.encode("stop", {"Reason": reason}, counter=1)
+        assert codec.decode("stop", data)["Reason"] == reason
 
 
 def _frames(codec: Codec, name: str, n: int, values: dict, start: int = 0):

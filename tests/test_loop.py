@@ -193,6 +193,26 @@ def test_consistency_guard_stops_when_the_target_pose_drifts_with_inliers_still_
     assert off["halt_reason"] == "end_of_path"  # guard off: only n_i is watched, and it stays high
 
 
+def test_inlier_ratio_gate_stops_at_the_step_whose_matches_turned_to_outliers(cfg, tmp_path):
+    """The gate reads each step's mean n_inliers / n_matches: here (the sim's real pipeline, whose ratio falls
+    from ~0.99 as the view turns away) a limit of 0.96 stops the arm at the first step below it, with its own
+    halt reason; nothing else would stop this 6 deg arc (off: end of path)."""
+    import json
+
+    s = _run(cfg, _stage(cfg, min_inlier_ratio=0.96), out=tmp_path)
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    ratios = [e for e in events if e["kind"] == "inlier_ratio"]
+    gate = [e for e in events if e["kind"] == "inlier_ratio_gate"]
+    assert s["halt_reason"] == "inlier_ratio" and len(gate) == 1 and s["faults"] == []
+    first_low = next(e for e in ratios if e["ratio"] < 0.96)
+    assert gate[0]["step"] == first_low["step"] >= 1 and gate[0]["ratio"] == first_low["ratio"]
+    assert all(0.96 <= e["ratio"] <= 1.0 for e in ratios if e["step"] < first_low["step"])
+    assert s["halt_angle_deg"] == pytest.approx(1.5 * first_low["step"], abs=1e-6)  # no step after it
+    assert s["max_overshoot_deg"] <= 1e-6
+    off = _run(cfg, _stage(cfg))
+    assert off["halt_reason"] == "end_of_path"
+
+
 def test_robot_state_gap_stops(cfg):
     s = _run(cfg, _stage(cfg), wrap_robot=lambda r: _StallingRobot(r, after=400))
     assert s["faults"] == ["state_gap"]

@@ -82,6 +82,21 @@ def test_evaluation_guard_stops_next_step_where_the_drift_crosses_half_the_toler
     assert off.guard_stop == {"2mm_3deg": math.inf, "4mm_10deg": math.inf}
 
 
+def test_the_replay_reads_each_positions_inlier_ratio_over_its_localized_frames():
+    import dataclasses
+
+    from supervisor.evaluation.experiments import evaluate_dataset
+
+    rows = _artifacts({})  # n matches = n + 10: the ratio falls as n_i does
+    rows = [dataclasses.replace(r, status="LOST", n_inliers=0) if r.position == 20 else r for r in rows]
+    r = evaluate_dataset("smooth", "arc", rows)
+    n = [int(round(400 * math.exp(-math.radians(2.25 * p) / math.radians(12.0)))) + 5 for p in range(20)]
+    assert r.inlier_ratio[:20] == pytest.approx([k / (k + 10) for k in n]) and math.isnan(r.inlier_ratio[20])
+    first = next(p for p in range(20) if n[p] / (n[p] + 10) < 0.8)
+    assert 0 < first < 20 and r.ratio_stop_at(0.8) == pytest.approx(math.radians(2.25 * first))
+    assert r.ratio_stop_at(0.01) == math.inf  # a lost position (nan) does not trip the gate; n_i speaks for it
+
+
 def test_the_replay_keeps_theta_p_after_each_position_for_runs_up_to_the_allowance():
     from supervisor.evaluation.experiments import N_T, evaluate_dataset
 

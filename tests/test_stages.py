@@ -55,6 +55,9 @@ def test_parse_converts_to_si_and_fills_defaults():
     assert (fast.predictor, fast.variant, fast.n_t, fast.frames_per_step) == ("next_step", "paper", 15, 5)
     assert slow.n_t == 15 and slow.step == pytest.approx(1.5 * DEG)  # paper defaults
     assert slow.sampling == "continuous"
+    assert fast.min_inlier_ratio == 0.0  # the inlier-ratio gate is off unless a stage sets it
+    assert stages_from(GOOD.replace("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: 0.24", 1))[
+        "fast"].min_inlier_ratio == pytest.approx(0.24)
     assert slow.theta_allowed(20 * DEG) == pytest.approx(18 * DEG)
     assert slow.theta_allowed(40 * DEG) == pytest.approx(30 * DEG)
     assert slow.theta_allowed(None) == pytest.approx(30 * DEG)
@@ -103,6 +106,8 @@ def test_load_stages_from_file(tmp_path):
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    final_step: half", "stages.fast.final_step", "to_allowance, whole"),
         ("sampling: continuous", "sampling: continuous\n    final_step: to_allowance", "stages.slow.final_step",
          "stop_and_go sampling only"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: 1", "stages.fast.min_inlier_ratio", "<= 0.99"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: -0.1", "stages.fast.min_inlier_ratio", ">= 0"),
     ],
 )
 def test_bad_values_name_file_and_dotted_key(old, new, key, words):

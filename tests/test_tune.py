@@ -83,6 +83,33 @@ def test_the_error_bound_can_make_a_low_threshold_safe_and_the_stage_yaml_loads(
     assert np.isfinite(plain["cross_validated"]["mean_spl_deg"])
 
 
+def test_the_inlier_ratio_gate_can_stop_a_cliff_and_the_stage_yaml_carries_it(tmp_path):
+    from supervisor.config import load_config
+    from supervisor.stages import load_stages
+
+    # the steep scene's matches turn to outliers (ratio 0.22) from position 8 (18 deg, before its 22 deg);
+    # elsewhere the ratio stays 0.5. The gate at 0.24 or 0.28 stops it there, so n_t may be lower.
+    cliff = replace(_arc("c", 0, 22, 0.2), inlier_ratio=[0.5] * 8 + [0.22] * 13)
+    arcs = [replace(_arc("a", 0, 20, 0.5), inlier_ratio=[0.5] * 21),
+            replace(_arc("b", 0, 30, 0.5), inlier_ratio=[0.5] * 21), cliff]
+    assert cliff.ratio_stop_at(0.24) == pytest.approx(POS[8]) and cliff.ratio_stop_at(0.2) == math.inf
+    assert cliff.ratio_stop_at(0.0) == math.inf  # 0: the gate is off
+    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    gated = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
+                           inlier_ratio=True)
+    assert gated["in_sample"]["incursions"] == 0 and gated["inlier_ratio"] is True
+    assert gated["in_sample"]["mean_spl_deg"] > plain["in_sample"]["mean_spl_deg"]
+    assert gated["_final"].min_ratio in (0.24, 0.28) and gated["_final"].n_t < plain["_final"].n_t
+    assert "inlier ratio >= 0.2" in gated["chosen_on_all_scenes"]
+    cfg = load_config(None)
+    st = load_stages(_written(tmp_path, stage_yaml(cfg, "explore", gated["_final"], "4mm_10deg",
+                                                   {**gated, "stage": "explore"})))["explore"]
+    assert st.min_inlier_ratio == gated["_final"].min_ratio and st.n_t == gated["_final"].n_t
+    st_plain = load_stages(_written(tmp_path, stage_yaml(cfg, "explore", plain["_final"], "4mm_10deg",
+                                                         {**plain, "stage": "explore"})))["explore"]
+    assert st_plain.min_inlier_ratio == 0.0 and plain["_final"].min_ratio == 0.0
+
+
 def _written(tmp_path, text: str):
     p = tmp_path / "plain.yaml"
     p.write_text(text)

@@ -21,7 +21,7 @@ DBC_NAMES = {"heartbeat": "HEARTBEAT", "stop": "STOP", "external_stop": "EXTERNA
 E2E_SIGNALS = ("Crc", "AliveCounter")
 STATES = ("idle", "armed", "moving", "halted", "fault")
 STOP_REASONS = ("other", "end_of_path", "boundary", "gate", "stop_request", "external_stop", "fault", "consistency",
-                "error_bound")
+                "error_bound", "inlier_ratio")
 
 
 class FrameError(SupervisorError):

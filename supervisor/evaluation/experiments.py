@@ -101,6 +101,9 @@ class DatasetResult:
     theta_p_path: dict[str, list[list[float]]] = field(default_factory=dict)
     fit_from: int = 0  # index of the first position with a fit (the warm-up before it)
     step: float = math.nan  # the recording's sampling step (SI)
+    # per position: mean n_inliers / n_matches over the localized frames (nan where none localized), what the
+    # loop's inlier-ratio gate reads after a step
+    inlier_ratio: list[float] = field(default_factory=list)
 
     def to_allowance_stops(self, system: str, margin: float) -> list[float]:
         """`system`'s stop per n_t when the arm runs up to the allowance theta_p - margin (stop-and-go's
@@ -140,6 +143,15 @@ class DatasetResult:
         tt, tr = TOLERANCES[tol]
         for x, (dt, dr) in zip(self.positions, self.drift):
             if dt > fraction * tt or dr > fraction * tr:
+                return float(x)
+        return math.inf
+
+    def ratio_stop_at(self, min_ratio: float) -> float:
+        """Where the inlier-ratio gate at `min_ratio` stops (inf: never; 0 = off)."""
+        if min_ratio <= 0:
+            return math.inf
+        for x, q in zip(self.positions, self.inlier_ratio):
+            if q < min_ratio:  # nan (nothing localized) compares False
                 return float(x)
         return math.inf
 
@@ -253,6 +265,11 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         if r.status == "OK" and math.isfinite(r.iou8):
             iou.setdefault(r.position, []).append(r.iou8)
     iou8_mean = [float(np.mean(iou[p])) if p in iou else math.nan for p in sorted({r.position for r in rows})]
+    ratios: dict[int, list[float]] = {}
+    for r in rows:
+        if r.status == "OK" and r.n_matches > 0:
+            ratios.setdefault(r.position, []).append(r.n_inliers / r.n_matches)
+    inlier_ratio = [float(np.mean(ratios[p])) if p in ratios else math.nan for p in sorted({r.position for r in rows})]
     # The error-aware boundary: after each position (past the warm-up) the uncertainty trend one step ahead.
     step_si = float(np.median(np.diff(x)))
     err_margin: dict[str, list[float]] = {}
@@ -268,7 +285,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
                          scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean, theta_p_path,
-                         k_lr - 1, step_si)
+                         k_lr - 1, step_si, inlier_ratio)
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:

@@ -52,6 +52,7 @@ from supervisor.prediction.errorbound import KAPPAS
 from supervisor.prediction.models import VARIANTS
 
 GUARD_FRACTIONS = (0.25, 0.5, 0.75, 1.0, 0.0)  # of the tolerance; 0 = guard off (conservative first)
+INLIER_RATIOS = (0.28, 0.24, 0.2, 0.0)  # the inlier-ratio gate's candidates (conservative first; 0 = off)
 SLACKS = tuple(math.radians(d) for d in (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0))  # robust choice: required margin
 
 
@@ -61,18 +62,21 @@ class OperatingPoint:
     n_t: int
     guard: float  # fraction of the tolerance (0 = off)
     kappa: float | None  # error-aware boundary (None = off)
+    min_ratio: float = 0.0  # the inlier-ratio gate (0 = off)
 
     def describe(self) -> str:
         g = "off" if self.guard == 0 else f"{self.guard:g} x tol"
         k = "" if self.kappa is None else f", kappa {self.kappa:g}"
-        return f"{self.variant}, n_t {self.n_t}, guard {g}{k}"
+        q = f", inlier ratio >= {self.min_ratio:g}" if self.min_ratio > 0 else ""
+        return f"{self.variant}, n_t {self.n_t}, guard {g}{k}{q}"
 
 
 class Grid:
     """Every candidate operating point and its stop on every arc (rows: points, columns: arcs)."""
 
     def __init__(self, arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tol: str,
-                 hard_limit: float, error_aware: bool, final_margin: float | None = None) -> None:
+                 hard_limit: float, error_aware: bool, final_margin: float | None = None,
+                 inlier_ratio: bool = False) -> None:
         self.arcs = arcs
         self.actual = np.array([r.actual[tol] for r in arcs])
         self.x_end = np.array([min(r.x_max, hard_limit) for r in arcs])
@@ -80,18 +84,21 @@ class Grid:
         points, rows = [], []
         guard = {g: np.array([r.guard_stop_at(g, tol) for r in arcs]) for g in GUARD_FRACTIONS}
         err = {k: np.array([r.error_stop(tol, k) if k is not None else math.inf for r in arcs]) for k in kappas}
+        ratios = INLIER_RATIOS if inlier_ratio else (0.0,)
+        gate = {q: np.array([r.ratio_stop_at(q) for r in arcs]) for q in ratios}
         for v in variants:
             system = predictor if v == "paper" else f"{predictor}_{v}"
             # (n_t, arcs); with final_margin, the run goes up to the allowance theta_p - margin instead of in
             # whole steps (DatasetResult.to_allowance_stops). The guard and the error bound still stop at
-            # their position.
+            # their position, as does the inlier-ratio gate.
             base = np.array([r.stops[system] if final_margin is None or predictor != "next_step"
                              else r.to_allowance_stops(system, final_margin) for r in arcs]).T
             for i in range(len(N_T) - 1, -1, -1):  # high n_t (conservative) first
                 for g in GUARD_FRACTIONS:
                     for k in kappas:
-                        points.append(OperatingPoint(v, N_T[i], g, k))
-                        rows.append(np.minimum(np.minimum(base[i], guard[g]), err[k]))
+                        for q in ratios:
+                            points.append(OperatingPoint(v, N_T[i], g, k, q))
+                            rows.append(np.minimum(np.minimum(np.minimum(base[i], guard[g]), err[k]), gate[q]))
         self.points = points
         self.stops = np.minimum(np.array(rows), hard_limit)
 
@@ -167,7 +174,7 @@ def load_recordings(cfg: Config, bench_dirs: Sequence[str | Path], caches: Seque
 
 def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, tolerance: str, out: str | Path, *,
          cache: str | Path | Sequence[str | Path] | None = None, variants: tuple[str, ...] | None = None,
-         error_aware: bool = False, jobs: int = 2,
+         error_aware: bool = False, inlier_ratio: bool = False, jobs: int = 2,
          progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
     """Leave-one-scene-out tuning of `stage` for `tolerance` on one suite or several recordings of the same
     scenes (`bench_dir` a list, `cache` one per suite or None); writes OUT/tune.json and OUT/<stage>.yaml."""
@@ -190,7 +197,7 @@ def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, 
     # a run that goes up to the allowance (stop-and-go's last step, or continuous sampling) is replayed so
     final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
     report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress,
-                            final_margin=final_margin)
+                            final_margin=final_margin, inlier_ratio=inlier_ratio)
     report["stage"] = stage
     report["suites"] = [str(b) for b in benches]
     final = report.pop("_final")
@@ -205,18 +212,20 @@ def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, 
 
 def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tolerance: str,
                    hard_limit: float, error_aware: bool = False, progress=lambda m: None,
-                   robust: bool = True, final_margin: float | None = None) -> dict[str, Any]:
+                   robust: bool = True, final_margin: float | None = None,
+                   inlier_ratio: bool = False) -> dict[str, Any]:
     """Leave-one-scene-out over `arcs` (evaluated datasets): per fold the choice and its held-out stops,
     the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs.
 
     `robust` (default): each choice also picks its safety slack by an inner leave-one-scene-out on
     its own training scenes (`Grid.choose_robust`); otherwise the plain best zero-incursion point.
     `final_margin` (rad): replay a run that goes up to the allowance theta_p - margin (stop-and-go's
-    `final_step: to_allowance`, continuous sampling); None: the paper's whole steps."""
+    `final_step: to_allowance`, continuous sampling); None: the paper's whole steps. `inlier_ratio`: also
+    choose the inlier-ratio gate's limit (INLIER_RATIOS)."""
     scenes = sorted({r.scene or r.name for r in arcs})
     if len(scenes) < 2:
         raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
-    grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware, final_margin)
+    grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware, final_margin, inlier_ratio)
     scene_of = np.array([r.scene or r.name for r in arcs])
     deg = math.degrees(1.0)
     folds, held_stops, static_stops = [], np.full(len(arcs), np.nan), np.full(len(arcs), np.nan)
@@ -247,6 +256,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     final, final_slack = grid.choose_robust(every, scene_of) if robust else (grid.choose(every), 0.0)
     return {
         "tolerance": tolerance, "predictor": predictor, "variants": list(variants), "error_aware": error_aware,
+        "inlier_ratio": inlier_ratio,
         "final_step_margin_deg": None if final_margin is None else final_margin * deg,
         "arcs": len(arcs), "scenes": scenes, "folds": folds,
         "cross_validated": cv, "cross_validated_static": cv_static,
@@ -273,6 +283,9 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
     node.pop("error_kappa", None)
     if op.kappa is not None:
         node["error_kappa"] = op.kappa  # the error-aware boundary, against the tolerance above
+    node.pop("min_inlier_ratio", None)
+    if op.min_ratio > 0:
+        node["min_inlier_ratio"] = op.min_ratio  # the inlier-ratio gate
     doc: dict[str, Any] = {"stages": {stage: node}}
     cv = report["cross_validated"]
     head = (f"# stage {stage} tuned for {tolerance} by leave-one-scene-out cross-validation over "

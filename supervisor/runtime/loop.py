@@ -101,6 +101,7 @@ class Sample:
     T_base_cam: np.ndarray | None = None  # robot kinematics at the frame's time
     sd_t: float = math.nan  # the pose's 1-sigma spread at the target (m; nan: not localized)
     sd_r: float = math.nan  # rad
+    n_matches: int = 0  # descriptor matches RANSAC chose the inliers from
 
 
 def overshoot(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
@@ -190,7 +191,8 @@ class SupervisorLoop:
         self.T_base_target_model = T_base_cam_model @ T_cam_target_model
         # where the guard measures translation (target frame; e.g. the model points' centroid)
         self.reference_point = np.zeros(3) if reference_point is None else np.asarray(reference_point, float)
-        self._guard_stop: float | None = None  # allowance latched by the consistency guard
+        self._guard_stop: float | None = None  # allowance latched by the consistency guard or the inlier-ratio gate
+        self._guard_reason = ""  # which of them latched it: "consistency" | "inlier_ratio"
         self.clock = clock
         self.events = events
         self.s_end = min(float(s_end), stage.hard_limit)
@@ -300,10 +302,11 @@ class SupervisorLoop:
         self.record.allowance_history.append((t, self._theta_allowed, stop_at))
 
     def _boundary_halt_reason(self) -> str:
-        """Why the robot stays where it is when no further motion is permitted: the consistency guard,
-        the error-aware boundary (when the last prediction's binding boundary was it), or the n_i model."""
+        """Why the robot stays where it is when no further motion is permitted: the consistency guard or the
+        inlier-ratio gate, the error-aware boundary (when the last prediction's binding boundary was it), or
+        the n_i model."""
         if self._guard_stop is not None:
-            return "consistency"
+            return self._guard_reason
         return "error_bound" if self._limited_by == "error_bound" else "boundary"
 
     # -- frames --------------------------------------------------------------------------
@@ -357,7 +360,8 @@ class SupervisorLoop:
             if res.ok:
                 self._last_ok = (job.T_base_cam, res.T_cam_target)
             s = Sample(job.t, job.step, theta, res.n_inliers, res.status.name, res.T_cam_target, job.meta,
-                       job.T_base_cam, res.sd_t if res.ok else math.nan, res.sd_r if res.ok else math.nan)
+                       job.T_base_cam, res.sd_t if res.ok else math.nan, res.sd_r if res.ok else math.nan,
+                       res.n_matches)
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
             self._awaiting[job.step] -= 1
@@ -403,6 +407,7 @@ class SupervisorLoop:
                                  "scale": 1.0 if fit is None else getattr(fit, "scale", 1.0),
                                  "boundary": None if pred is None else pred.boundary})
         self._check_consistency(now, step, samples)
+        self._check_inlier_ratio(now, step, samples)
         self._set_prediction(now, pred)
         self.worker.refine(now, step)  # model refinement from the robot's motion, if the schedule says so
         self._emit_notes(now)
@@ -422,9 +427,25 @@ class SupervisorLoop:
         st = self.stage
         tripped = (st.consistency_t > 0 and e_t > st.consistency_t) or (st.consistency_r > 0 and e_r > st.consistency_r)
         if tripped and self._guard_stop is None:
-            self._guard_stop = self._stop_point()
+            self._guard_stop, self._guard_reason = self._stop_point(), "consistency"
             self.events.emit(now, "consistency_guard", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
                              limit_mm=st.consistency_t * 1000, limit_deg=math.degrees(st.consistency_r),
+                             s_deg=math.degrees(self.follower.state.s))
+
+    def _check_inlier_ratio(self, now: float, step: int, samples: list[Sample]) -> None:
+        """The inlier-ratio gate: trip (latched, like the guard) when the step's mean n_inliers / n_matches
+        over its localized frames falls below the stage's `min_inlier_ratio`. When most matches are outliers
+        RANSAC is near its breakdown, and a pose can be lost within the next step while n_i is still well
+        above n_t (a cliff); the ratio falls before it."""
+        ok = [s for s in samples if s.status == "OK" and s.n_matches > 0]
+        if not ok:
+            return  # nothing localized: n_i = 0 speaks for itself
+        ratio = float(np.mean([s.n_inliers / s.n_matches for s in ok]))
+        self.events.emit(now, "inlier_ratio", step=step, ratio=ratio, n_frames=len(ok))
+        limit = self.stage.min_inlier_ratio
+        if limit > 0 and ratio < limit and self._guard_stop is None:
+            self._guard_stop, self._guard_reason = self._stop_point(), "inlier_ratio"
+            self.events.emit(now, "inlier_ratio_gate", step=step, ratio=ratio, limit=limit,
                              s_deg=math.degrees(self.follower.state.s))
 
     # -- faults and halts ----------------------------------------------------------------
