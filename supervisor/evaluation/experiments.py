@@ -156,6 +156,17 @@ class DatasetResult:
         return math.inf
 
 
+def _localized_means(rows, value) -> list[float]:
+    """Per sampling position (in order): the mean of `value(row)` over its localized frames where it is
+    finite; nan where there is none."""
+    groups: dict[int, list[float]] = {}
+    for r in rows:
+        v = value(r) if r.status == "OK" else math.nan
+        if math.isfinite(v):
+            groups.setdefault(r.position, []).append(v)
+    return [float(np.mean(groups[p])) if p in groups else math.nan for p in sorted({r.position for r in rows})]
+
+
 def _per_position(rows, kind: str):
     """Per sampling position: mean coordinate, samples (x, n_i), mean errors against ground truth,
     mean consistency drift (t, r) over the localized frames (nan where none localized), and the
@@ -260,16 +271,8 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     curve = mlp.fit_curve(xs_si, np.concatenate(nsamp[:k_lr]))
     stops["mlp"] = [mlp.boundary_of(curve, nt, float(x[k_lr - 1])) if curve is not None else float(x[k_lr - 1])
                     for nt in N_T]
-    iou: dict[int, list[float]] = {}
-    for r in rows:
-        if r.status == "OK" and math.isfinite(r.iou8):
-            iou.setdefault(r.position, []).append(r.iou8)
-    iou8_mean = [float(np.mean(iou[p])) if p in iou else math.nan for p in sorted({r.position for r in rows})]
-    ratios: dict[int, list[float]] = {}
-    for r in rows:
-        if r.status == "OK" and r.n_matches > 0:
-            ratios.setdefault(r.position, []).append(r.n_inliers / r.n_matches)
-    inlier_ratio = [float(np.mean(ratios[p])) if p in ratios else math.nan for p in sorted({r.position for r in rows})]
+    iou8_mean = _localized_means(rows, lambda r: r.iou8)
+    inlier_ratio = _localized_means(rows, lambda r: r.n_inliers / r.n_matches if r.n_matches > 0 else math.nan)
     # The error-aware boundary: after each position (past the warm-up) the uncertainty trend one step ahead.
     step_si = float(np.median(np.diff(x)))
     err_margin: dict[str, list[float]] = {}

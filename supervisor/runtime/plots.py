@@ -47,7 +47,8 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
         o_theta = np.degrees(np.asarray(oracle["theta"], float))
         # A refined position is one the judge sampled again inside a failing step; drawn apart from the sweep.
         o_refined = np.asarray(oracle.get("refined") or [False] * len(o_theta), bool)
-        for mask, marker, label in ((~o_refined, "s", "oracle sweep"), (o_refined, "D", "oracle, refined step")):
+        o_groups = ((~o_refined, "s", "oracle sweep"), (o_refined, "D", "oracle, refined step"))
+        for mask, marker, label in o_groups:
             if mask.any():
                 ax2.plot(o_theta[mask], np.asarray(oracle["n_mean"], float)[mask], marker, ms=3, color="tab:gray",
                          alpha=0.6, mfc="none" if marker == "D" else None, label=f"n_i ({label}, mean)")
@@ -73,7 +74,7 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
         ax3.plot(d[:, 0], d[:, 1], "o-", ms=3, color="tab:blue", label="target-pose drift (run, step mean)")
     if oracle is not None:
         te = np.array(oracle["t_err"], float) * 1000
-        for mask, marker, label in ((~o_refined, "s", "oracle sweep"), (o_refined, "D", "oracle, refined step")):
+        for mask, marker, label in o_groups:
             ok = mask & np.isfinite(te)
             if ok.any():
                 ax3.plot(o_theta[ok], te[ok], marker, ms=3, color="tab:gray", alpha=0.7,
