@@ -20,14 +20,16 @@ ratio's median and range, and for each candidate limit how many safe stops lie b
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import statistics
 import sys
 from pathlib import Path
 
-TOLERANCES = {"2mm_3deg": (2.0, 3.0), "4mm_10deg": (4.0, 10.0)}  # mm, deg (as in the cache's columns)
+from supervisor.evaluation.cache import read_artifacts
+from supervisor.evaluation.experiments import TOLERANCES
+from supervisor.evaluation.metrics import first_exceeded
+
 LIMITS = (0.2, 0.24, 0.28, 0.32)
 MID = (14.0, 32.0)  # inliers: where n_i alone cannot tell a cliff's last stop from a plateau's
 
@@ -38,28 +40,23 @@ def _mean(xs: list[float]) -> float:
 
 def recording_stops(cache: Path, tol: str) -> list[tuple[str, float, float, bool]]:
     """(arc, n mean, ratio mean, last safe) for every safe position of every arc in one cache."""
-    t_max, r_max = TOLERANCES[tol]
+    tol_t, tol_r = TOLERANCES[tol]
     out = []
     for f in sorted(cache.glob("arc_*.csv")):
-        pos: dict[int, list[dict]] = {}
-        with f.open(newline="") as fh:
-            for row in csv.DictReader(fh):
-                pos.setdefault(int(row["position"]), []).append(row)
+        pos: dict[int, list] = {}
+        for r in read_artifacts(f):
+            pos.setdefault(r.position, []).append(r)
         rows = [pos[k] for k in sorted(pos)]
-        safe = []
-        for rs in rows:
-            ok = all(r["status"] == "OK" for r in rs)
-            t = _mean([float(r["t_err_mm"]) if r["status"] == "OK" else math.inf for r in rs])
-            a = _mean([float(r["r_err_deg"]) if r["status"] == "OK" else math.inf for r in rs])
-            if not (ok and t <= t_max and a <= r_max):
-                break
-            safe.append(rs)
-        if len(safe) == len(rows) or len(safe) < 2:
+        # a frame not localized makes its position's mean error infinite: exceeded
+        t = [_mean([r.t_err if r.status == "OK" else math.inf for r in rs]) for rs in rows]
+        a = [_mean([r.r_err if r.status == "OK" else math.inf for r in rs]) for rs in rows]
+        k_bad = first_exceeded(t, a, tol_t, tol_r)
+        if k_bad is None or k_bad < 2:
             continue  # never fails (no last safe stop), or fails at the start
-        for k, rs in enumerate(safe[1:], 1):
-            n = _mean([float(r["n_inliers"]) for r in rs])
-            q = _mean([int(r["n_inliers"]) / max(int(r["n_matches"]), 1) for r in rs])
-            out.append((f"{cache.name}/{f.stem}", n, q, k == len(safe) - 1))
+        for k in range(1, k_bad):
+            n = _mean([float(r.n_inliers) for r in rows[k]])
+            q = _mean([r.n_inliers / max(r.n_matches, 1) for r in rows[k]])
+            out.append((f"{cache.name}/{f.stem}", n, q, k == k_bad - 1))
     return out
 
 
