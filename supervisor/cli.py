@@ -203,7 +203,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
     variants = tuple(v for v in args.variants.split(",") if v) if args.variants else None
     out = args.out or f"out/tune-{args.stage}-{args.tolerance}"
     report = tune(cfg, args.bench_dir, args.stage, args.tolerance, out, cache=args.cache, variants=variants,
-                  error_aware=args.error_aware, inlier_ratio=args.inlier_ratio, jobs=args.jobs or 2)
+                  error_aware=args.error_aware, inlier_ratio=args.inlier_ratio,
+                  strict_boundary=args.strict_boundary, jobs=args.jobs or 2)
     print(format_report(report))
     return 0
 
@@ -432,6 +433,10 @@ def build_parser() -> argparse.ArgumentParser:
     tu.add_argument("--error-aware", action="store_true", help="also tune the error-aware boundary's kappa")
     tu.add_argument("--inlier-ratio", action="store_true",
                     help="also tune the inlier-ratio gate's limit (min_inlier_ratio: 0.28, 0.24, 0.2 or off)")
+    tu.add_argument("--strict-boundary", action="store_true",
+                    help="judge stops against boundaries whose crossing toward a position that did not localize "
+                         "lies at the last position within tolerance (the earliest it can be), not at the lost "
+                         "position (the latest): a dry-run's refined oracle finds such cliffs inside the step")
     tu.add_argument("--cache", action="append", default=None,
                     help="localization cache directory, once per suite in order (default OUT/cache, then "
                          "OUT/cache-2, ...; an `evaluate` OUT/cache can be reused)")

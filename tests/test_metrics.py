@@ -22,6 +22,21 @@ def test_actual_boundary_sorts_positions_and_takes_the_earlier_quantity():
         actual_boundary(np.array([]), np.array([]), np.array([]), 0.002, 0.05)
 
 
+def test_a_lost_position_crosses_at_itself_or_at_the_last_good_one():
+    x = np.array([0.0, 1.0, 2.0, 3.0])
+    t = np.array([0.0, 0.001, math.inf, math.inf])  # lost from x = 2: no error to interpolate toward
+    assert actual_boundary(x, t, np.zeros(4), 0.004, 0.1) == pytest.approx(2.0)  # the latest it can cross
+    assert actual_boundary(x, t, np.zeros(4), 0.004, 0.1, lost="last_good") == pytest.approx(1.0)  # the earliest
+    # a finite error is interpolated either way, so the two judges differ only at lost positions
+    gross = np.array([0.0, 0.001, 0.031, math.inf])
+    for lost in ("at", "last_good"):
+        assert actual_boundary(x, gross, np.zeros(4), 0.004, 0.1, lost=lost) == pytest.approx(1.1)
+    # lost at the start: the start, by both
+    assert actual_boundary(x, np.full(4, math.inf), np.zeros(4), 0.004, 0.1, lost="last_good") == 0.0
+    with pytest.raises(ValueError, match="lost"):
+        actual_boundary(x, t, np.zeros(4), 0.004, 0.1, lost="middle")
+
+
 def test_first_exceeded_is_the_first_position_beyond_either_quantity():
     t = np.array([0.001, 0.002, 0.003, 0.005])
     r = np.array([0.0, 0.0, 0.2, 0.0])
@@ -95,6 +110,19 @@ def test_the_replay_reads_each_positions_inlier_ratio_over_its_localized_frames(
     first = next(p for p in range(20) if n[p] / (n[p] + 10) < 0.8)
     assert 0 < first < 20 and r.ratio_stop_at(0.8) == pytest.approx(math.radians(2.25 * first))
     assert r.ratio_stop_at(0.01) == math.inf  # a lost position (nan) does not trip the gate; n_i speaks for it
+
+
+def test_the_replay_keeps_both_readings_of_a_boundary_at_a_lost_position():
+    import dataclasses
+
+    from supervisor.evaluation.experiments import evaluate_dataset
+
+    # every frame within tolerance up to position 11, none localized from 12 on (a cliff)
+    rows = [dataclasses.replace(r, status="LOST", n_inliers=0) if r.position >= 12 else r for r in _artifacts({})]
+    r = evaluate_dataset("cliff", "arc", rows)
+    for tol in ("2mm_3deg", "4mm_10deg"):
+        assert r.actual[tol] == pytest.approx(math.radians(2.25 * 12))  # at the lost position (the latest)
+        assert r.actual_last_good[tol] == pytest.approx(math.radians(2.25 * 11))  # the one before it (the earliest)
 
 
 def test_the_replay_keeps_theta_p_after_each_position_for_runs_up_to_the_allowance():

@@ -110,6 +110,32 @@ def test_the_inlier_ratio_gate_can_stop_a_cliff_and_the_stage_yaml_carries_it(tm
     assert st_plain.min_inlier_ratio == 0.0 and plain["_final"].min_ratio == 0.0
 
 
+def test_the_strict_boundary_judges_a_cliff_at_its_last_good_position_and_asks_for_more_caution(tmp_path):
+    from supervisor.config import load_config
+
+    # c is a cliff: within tolerance at 22 deg, lost at the next recorded position (24.25 deg). The default
+    # judge puts its boundary at the lost position, the strict one at 22 deg (actual_last_good), where a
+    # judge sampling inside the step may find it.
+    a, b = _arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.5)
+    c = _arc("c", 0, 24.25, 0.5)
+    c = replace(c, actual_last_good={k: 22.0 * D for k in c.actual})
+    arcs = [replace(a, actual_last_good=a.actual), replace(b, actual_last_good=b.actual), c]
+    lenient = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    strict = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
+                            strict_boundary=True)
+    assert lenient["strict_boundary"] is False and lenient["cross_validated_incursions_default_judge"] is None
+    assert strict["strict_boundary"] is True
+    # a needs n_t >= 24 either way; c's stop at n_t 24 is 24.25 deg: safe by the default judge only
+    assert lenient["_final"].n_t == 24 and strict["_final"].n_t == 29
+    held_c = {f["held_out"]: f for f in strict["folds"]}["c"]
+    assert [x["actual_deg"] for x in held_c["arcs"]] == [pytest.approx(22.0)]
+    # held out, c is tuned on a and b (n_t 24) and passes 22 deg: an incursion by the strict judge only
+    assert strict["cross_validated"]["incursions"] == 1
+    assert strict["cross_validated_incursions_default_judge"] == 0
+    text = stage_yaml(load_config(None), "explore", strict["_final"], "4mm_10deg", {**strict, "stage": "explore"})
+    assert "strict boundary" in text.splitlines()[1]
+
+
 def _written(tmp_path, text: str):
     p = tmp_path / "plain.yaml"
     p.write_text(text)

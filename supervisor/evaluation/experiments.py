@@ -104,6 +104,9 @@ class DatasetResult:
     # per position: mean n_inliers / n_matches over the localized frames (nan where none localized), what the
     # loop's inlier-ratio gate reads after a step
     inlier_ratio: list[float] = field(default_factory=list)
+    # per tolerance, SI: the boundary with a lost position's crossing at the position before it (metrics.
+    # actual_boundary lost="last_good"), the earliest the error can have crossed; `actual` takes the latest
+    actual_last_good: dict[str, float] = field(default_factory=dict)
 
     def to_allowance_stops(self, system: str, margin: float) -> list[float]:
         """`system`'s stop per n_t when the arm runs up to the allowance theta_p - margin (stop-and-go's
@@ -206,6 +209,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     x_max = float(x[-1])
     xf, xmax_f = axis.to_fit(x), float(axis.to_fit(x_max))
     actual = {k: actual_boundary(x, te, re, tt, tr) for k, (tt, tr) in TOLERANCES.items()}
+    actual_last_good = {k: actual_boundary(x, te, re, tt, tr, lost="last_good") for k, (tt, tr) in TOLERANCES.items()}
     k_lr = min(K_POSITIONS[kind], len(x))
     stops: dict[str, list[float]] = {}
     theta_p_path: dict[str, list[list[float]]] = {}  # next-step systems: theta_p per position up to the stop
@@ -288,7 +292,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
                          scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean, theta_p_path,
-                         k_lr - 1, step_si, inlier_ratio)
+                         k_lr - 1, step_si, inlier_ratio, actual_last_good)
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:

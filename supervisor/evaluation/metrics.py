@@ -15,15 +15,24 @@ import numpy as np
 INCURSION_EPS = 1e-9  # a stop counts as an incursion only beyond the boundary by more than this (rad or m)
 
 
+LOST_CROSSINGS = ("at", "last_good")
+
+
 def actual_boundary(x: np.ndarray, mean_t_err: np.ndarray, mean_r_err: np.ndarray, tol_t: float,
-                    tol_r: float) -> float:
+                    tol_r: float, lost: str = "at") -> float:
     """theta_a: where the mean error per position first exceeds the tolerance (translation OR rotation).
 
     Linearly interpolated between the last position within tolerance and the
     first beyond it (per quantity; the earlier crossing wins). Never exceeded ->
     the last position; exceeded at the first position -> the first position. A
-    non-finite mean error (lost frames) counts as exceeded, crossing at that position.
+    non-finite mean error (lost frames) counts as exceeded, with no error to interpolate
+    toward: `lost="at"` puts the crossing at that position (the latest the error can have
+    crossed), `lost="last_good"` at the position before it (the earliest: the limit of the
+    interpolation as the error grows without bound). A judge that samples inside the step
+    finds a cliff anywhere in between.
     """
+    if lost not in LOST_CROSSINGS:
+        raise ValueError(f"lost must be one of {LOST_CROSSINGS}, got {lost!r}")
     x = np.asarray(x, float)
     if len(x) == 0:
         raise ValueError("no positions")
@@ -40,8 +49,10 @@ def actual_boundary(x: np.ndarray, mean_t_err: np.ndarray, mean_r_err: np.ndarra
             return float(x[0])
         if math.isfinite(e[k]) and e[k] > e[k - 1]:
             cross = x[k - 1] + (tol - e[k - 1]) / (e[k] - e[k - 1]) * (x[k] - x[k - 1])
+        elif math.isfinite(e[k]) or lost == "at":
+            cross = x[k]
         else:
-            cross = x[k]  # lost frames: no error to interpolate toward
+            cross = x[k - 1]
         best = min(best, float(cross))
     return best
 

@@ -76,9 +76,10 @@ class Grid:
 
     def __init__(self, arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tol: str,
                  hard_limit: float, error_aware: bool, final_margin: float | None = None,
-                 inlier_ratio: bool = False) -> None:
+                 inlier_ratio: bool = False, strict_boundary: bool = False) -> None:
         self.arcs = arcs
-        self.actual = np.array([r.actual[tol] for r in arcs])
+        # strict: a lost position's crossing at the position before it (DatasetResult.actual_last_good)
+        self.actual = np.array([r.actual_last_good[tol] if strict_boundary else r.actual[tol] for r in arcs])
         self.x_end = np.array([min(r.x_max, hard_limit) for r in arcs])
         kappas: tuple[float | None, ...] = (*sorted(KAPPAS, reverse=True), None) if error_aware else (None,)
         points, rows = [], []
@@ -174,7 +175,7 @@ def load_recordings(cfg: Config, bench_dirs: Sequence[str | Path], caches: Seque
 
 def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, tolerance: str, out: str | Path, *,
          cache: str | Path | Sequence[str | Path] | None = None, variants: tuple[str, ...] | None = None,
-         error_aware: bool = False, inlier_ratio: bool = False, jobs: int = 2,
+         error_aware: bool = False, inlier_ratio: bool = False, strict_boundary: bool = False, jobs: int = 2,
          progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
     """Leave-one-scene-out tuning of `stage` for `tolerance` on one suite or several recordings of the same
     scenes (`bench_dir` a list, `cache` one per suite or None); writes OUT/tune.json and OUT/<stage>.yaml."""
@@ -197,7 +198,8 @@ def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, 
     # a run that goes up to the allowance (stop-and-go's last step, or continuous sampling) is replayed so
     final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
     report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress,
-                            final_margin=final_margin, inlier_ratio=inlier_ratio)
+                            final_margin=final_margin, inlier_ratio=inlier_ratio,
+                            strict_boundary=strict_boundary)
     report["stage"] = stage
     report["suites"] = [str(b) for b in benches]
     final = report.pop("_final")
@@ -213,7 +215,7 @@ def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, 
 def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tolerance: str,
                    hard_limit: float, error_aware: bool = False, progress=lambda m: None,
                    robust: bool = True, final_margin: float | None = None,
-                   inlier_ratio: bool = False) -> dict[str, Any]:
+                   inlier_ratio: bool = False, strict_boundary: bool = False) -> dict[str, Any]:
     """Leave-one-scene-out over `arcs` (evaluated datasets): per fold the choice and its held-out stops,
     the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs.
 
@@ -221,11 +223,15 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     its own training scenes (`Grid.choose_robust`); otherwise the plain best zero-incursion point.
     `final_margin` (rad): replay a run that goes up to the allowance theta_p - margin (stop-and-go's
     `final_step: to_allowance`, continuous sampling); None: the paper's whole steps. `inlier_ratio`: also
-    choose the inlier-ratio gate's limit (INLIER_RATIOS)."""
+    choose the inlier-ratio gate's limit (INLIER_RATIOS). `strict_boundary`: judge every stop against the
+    boundary whose crossing toward a position that did not localize lies at the position before it (the
+    earliest it can be; a live judge that samples inside such a step finds cliffs early in it), not at the
+    lost position itself; the report then also counts the held-out stops' incursions by the default judge."""
     scenes = sorted({r.scene or r.name for r in arcs})
     if len(scenes) < 2:
         raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
-    grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware, final_margin, inlier_ratio)
+    grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware, final_margin, inlier_ratio,
+                strict_boundary)
     scene_of = np.array([r.scene or r.name for r in arcs])
     deg = math.degrees(1.0)
     folds, held_stops, static_stops = [], np.full(len(arcs), np.nan), np.full(len(arcs), np.nan)
@@ -256,10 +262,13 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     final, final_slack = grid.choose_robust(every, scene_of) if robust else (grid.choose(every), 0.0)
     return {
         "tolerance": tolerance, "predictor": predictor, "variants": list(variants), "error_aware": error_aware,
-        "inlier_ratio": inlier_ratio,
+        "inlier_ratio": inlier_ratio, "strict_boundary": strict_boundary,
         "final_step_margin_deg": None if final_margin is None else final_margin * deg,
         "arcs": len(arcs), "scenes": scenes, "folds": folds,
         "cross_validated": cv, "cross_validated_static": cv_static,
+        # the same held-out stops against the default judge's boundaries (a lost position's crossing at it)
+        "cross_validated_incursions_default_judge": int(np.sum(held_stops > np.array(
+            [r.actual[tolerance] for r in arcs]) + INCURSION_EPS)) if strict_boundary else None,
         "cv_improvement_over_static": (cv["mean_spl_deg"] / cv_static["mean_spl_deg"] - 1.0)
         if cv_static["mean_spl_deg"] > 0 else None,
         "chosen_on_all_scenes": None if final is None else grid.points[final].describe(),
@@ -290,13 +299,18 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
     cv = report["cross_validated"]
     head = (f"# stage {stage} tuned for {tolerance} by leave-one-scene-out cross-validation over "
             f"{report['arcs']} arcs of {len(report['scenes'])} scenes{_recordings(report)}:\n"
-            f"# cross-validated incursion rate {cv['incursion_rate']:.3f}, mean SPL {cv['mean_spl_deg']:.2f} deg\n")
+            f"# cross-validated incursion rate {cv['incursion_rate']:.3f}, mean SPL {cv['mean_spl_deg']:.2f} deg"
+            f"{_judge(report)}\n")
     return head + yaml.safe_dump(doc, sort_keys=False)
 
 
 def _recordings(report: dict[str, Any]) -> str:
     n = len(report.get("suites", ()))
     return f" in {n} recordings" if n > 1 else ""
+
+
+def _judge(report: dict[str, Any]) -> str:
+    return " (strict boundary: a lost position crosses at the one before it)" if report.get("strict_boundary") else ""
 
 
 def format_report(r: dict[str, Any]) -> str:
@@ -308,7 +322,9 @@ def format_report(r: dict[str, Any]) -> str:
              + ("" if r.get("final_step_margin_deg") is None
                 else f"; up to the allowance, margin {r['final_step_margin_deg']:g} deg") + ")",
              f"  cross-validated: incursion rate {cv['incursion_rate']:.3f} ({cv['incursions']} arcs), "
-             f"mean SPL {cv['mean_spl_deg']:.2f} deg",
+             f"mean SPL {cv['mean_spl_deg']:.2f} deg{_judge(r)}"
+             + ("" if r.get("cross_validated_incursions_default_judge") is None
+                else f"; by the default judge {r['cross_validated_incursions_default_judge']} arcs"),
              f"  static, cross-validated: incursion rate {cs['incursion_rate']:.3f} ({cs['incursions']} arcs), "
              f"mean SPL {cs['mean_spl_deg']:.2f} deg"
              + ("" if imp is None else f"; improvement {100 * imp:+.1f}%"),
