@@ -9,11 +9,11 @@ OUT    ?= out
 
 .PHONY: setup run test bench clean aravis-deps
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or: make PYTHON=/path/to/python3.11)"; exit 2; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -c constraints.txt -e '.[test]'
 	@touch $(STAMP)
 
 setup: $(STAMP)
@@ -29,10 +29,10 @@ test: $(ARAVIS_STAMP)
 APT_ARAVIS := libgirepository1.0-dev libcairo2-dev pkg-config gcc aravis-tools
 # systemd: systemd-analyze checks the shipped unit
 APT_TEST := $(APT_ARAVIS) systemd
-$(ARAVIS_STAMP): $(STAMP) pyproject.toml
+$(ARAVIS_STAMP): $(STAMP) pyproject.toml constraints.txt
 	@dpkg -s $(APT_TEST) >/dev/null 2>&1 || { apt-get update -qq && \
 	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(APT_TEST) >/dev/null; }
-	$(PY) -m pip install --quiet -e '.[test,aravis]'
+	$(PY) -m pip install --quiet -c constraints.txt -e '.[test,aravis]'
 	@touch $(ARAVIS_STAMP)
 
 aravis-deps: $(ARAVIS_STAMP)
