@@ -8,7 +8,7 @@ import pytest
 
 from supervisor.paths import REPO_ROOT
 
-DOCS = ["README.md", "docs/method.md", "docs/architecture.md", "docs/operation.md"]
+DOCS = ["README.md", "docs/method.md", "docs/architecture.md", "docs/operation.md", "docs/tuning.md"]
 
 
 @pytest.mark.parametrize("doc", DOCS)
