@@ -193,6 +193,23 @@ def test_consistency_guard_stops_when_the_target_pose_drifts_with_inliers_still_
     assert off["halt_reason"] == "end_of_path"  # guard off: only n_i is watched, and it stays high
 
 
+def test_consistency_event_logs_the_steps_worst_frame_beside_its_mean(cfg, tmp_path):
+    """A step whose first frame is good and second shifted (the camera slipped between them): the guard
+    acts on the mean drift, the event also carries the worst frame's, which the mean hides."""
+    import json
+
+    off = _stage(cfg, consistency_t=0.0, consistency_r=0.0)  # the guard off: the run goes on to log every step
+    _run(cfg, off, wrap_camera=lambda c: _Wrapped(c, after=3, mode="shift"), out=tmp_path)
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    steps = {e["step"]: e for e in events if e["kind"] == "consistency"}
+    assert all(e["worst_drift_mm"] >= e["drift_mm"] - 1e-9 and e["worst_drift_deg"] >= e["drift_deg"] - 1e-9
+               for e in steps.values())
+    good, mixed, shifted = steps[0], steps[1], steps[2]  # 2 frames per step; frames 4 on are shifted
+    assert mixed["n_frames"] == 2 and mixed["worst_drift_mm"] > 1.5 * mixed["drift_mm"]
+    assert mixed["worst_drift_mm"] > 4 * good["worst_drift_mm"]
+    assert shifted["drift_mm"] > 0.75 * shifted["worst_drift_mm"]  # both frames off alike
+
+
 def test_inlier_ratio_gate_stops_at_the_step_whose_matches_turned_to_outliers(cfg, tmp_path):
     """The gate reads each step's mean n_inliers / n_matches: here (the sim's real pipeline, whose ratio falls
     from ~0.99 as the view turns away) a limit of 0.96 stops the arm at the first step below it, with its own

@@ -422,8 +422,11 @@ class SupervisorLoop:
         e_t = float(np.mean([e[0] for e in errs]))
         e_r = float(np.mean([e[1] for e in errs]))
         self.record.consistency.append((now, step, e_t, e_r))
+        # the guard acts on the mean; the step's worst frame is logged beside it (a single gross frame among
+        # good ones moves the mean little and is what a later analysis of the run looks for)
         self.events.emit(now, "consistency", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
-                         n_frames=len(errs))
+                         worst_drift_mm=1000 * max(e[0] for e in errs),
+                         worst_drift_deg=math.degrees(max(e[1] for e in errs)), n_frames=len(errs))
         st = self.stage
         tripped = (st.consistency_t > 0 and e_t > st.consistency_t) or (st.consistency_r > 0 and e_r > st.consistency_r)
         if tripped and self._guard_stop is None:
