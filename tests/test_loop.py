@@ -230,6 +230,23 @@ def test_inlier_ratio_gate_stops_at_the_step_whose_matches_turned_to_outliers(cf
     assert off["halt_reason"] == "end_of_path"
 
 
+def test_inlier_ratio_gate_brakes_a_continuous_arc(cfg, tmp_path):
+    """`explore_continuous` ships the gate too: while moving, the step whose mean ratio falls below the limit
+    brakes the arm (halt reason `inlier_ratio`) without passing any allowance; off, the arc runs to its end."""
+    import json
+
+    moving = _stage(cfg, sampling="continuous", final_step="whole", margin=math.radians(1.5))
+    s = _run(cfg, dataclasses.replace(moving, min_inlier_ratio=0.96), out=tmp_path)
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    gate = [e for e in events if e["kind"] == "inlier_ratio_gate"]
+    first_low = next(e for e in events if e["kind"] == "inlier_ratio" and e["ratio"] < 0.96)
+    assert s["halt_reason"] == "inlier_ratio" and len(gate) == 1 and s["faults"] == []
+    assert gate[0]["step"] == first_low["step"] >= 1
+    assert s["max_overshoot_deg"] <= 1e-6 and s["max_executed_angle_deg"] < 6.0 - 1e-6
+    off = _run(cfg, moving)
+    assert off["halt_reason"] == "end_of_path" and off["max_overshoot_deg"] <= 1e-6
+
+
 def test_robot_state_gap_stops(cfg):
     s = _run(cfg, _stage(cfg), wrap_robot=lambda r: _StallingRobot(r, after=400))
     assert s["faults"] == ["state_gap"]
