@@ -463,6 +463,7 @@ def test_the_oracle_can_judge_at_a_finer_step_with_more_frames(tmp_path: Path) -
     s = run_dry_run(load_config(None), spec, tmp_path / "out", progress=lambda m: None)
     assert s["oracle_step_deg"] == pytest.approx(15.0) and s["oracle_frames"] == 2 and s["oracle_refine"] == 3
     assert s["min_inlier_ratio"] == pytest.approx(0.28)  # the summary records the stage's gates: explore ships the gate
+    assert s["error_kappa"] == pytest.approx(1.0)  # and its error bound (kappa 1 since session 19)
     # judged on 0, 15, 30, 45 deg and, 3 times finer, the step before each tolerance's first exceeded position
     rows = np.genfromtxt(tmp_path / "out" / "oracle.csv", delimiter=",", names=True)
     coarse, fine = rows[rows["refined"] == 0], rows[rows["refined"] == 1]

@@ -1,0 +1,53 @@
+"""benchmarks/replay_stage.py: a configured stage's point replayed on recordings, kappa varied."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import math
+
+import pytest
+
+from supervisor.config import load_config
+from supervisor.errors import ConfigError
+from supervisor.evaluation.tune import OperatingPoint
+from supervisor.paths import REPO_ROOT
+from test_tune import _arc
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("replay_stage", REPO_ROOT / "benchmarks" / "replay_stage.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_shipped_explore_point_is_read_from_the_config_and_an_off_grid_guard_is_refused():
+    rs = _load()
+    cfg = load_config(None)
+    point, margin = rs.stage_point(cfg, "explore", "4mm_10deg")
+    st = cfg.stage("explore")
+    assert point == OperatingPoint(st.variant, st.n_t, 1.0, st.error_kappa, st.min_inlier_ratio)
+    assert margin == pytest.approx(st.margin)  # the last step up to the allowance
+    odd = dataclasses.replace(cfg, stages={**cfg.stages, "explore": dataclasses.replace(st, consistency_t=0.0033)})
+    with pytest.raises(ConfigError, match="consistency_limit_mm"):
+        rs.stage_point(odd, "explore", "4mm_10deg")
+
+
+def test_kappa_changes_which_arcs_are_passed_and_both_judges_are_reported():
+    rs = _load()
+    # at n_t 14 the next-step stop is 10 deg past a and b's boundaries; b's pose spread reaches the tolerance
+    # at kappa 1 from position 6 (13.5 deg), which stops it in time; nothing announces a's
+    arcs = [_arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.5, err_from=6)]
+    arcs = [dataclasses.replace(r, actual_last_good=dict(r.actual)) for r in arcs]
+    arcs[1] = dataclasses.replace(arcs[1], actual_last_good={k: math.radians(12.0) for k in arcs[1].actual})
+    rows = rs.replay(arcs, OperatingPoint("logfit_lcb", 14, 0.0, None), None, math.radians(45.0), "4mm_10deg",
+                     [None, 1.0])
+    by = {(r["judge"], r["kappa"]): r for r in rows}
+    assert set(by) == {(j, k) for j in ("default", "strict") for k in (None, 1.0)}
+    assert [p["arc"] for p in by["default", None]["passed"]] == ["arc_a_az000", "arc_b_az000"]
+    assert [p["arc"] for p in by["default", 1.0]["passed"]] == ["arc_a_az000"]
+    assert by["default", 1.0]["mean_spl_deg"] < by["default", None]["mean_spl_deg"]
+    assert 0.0 < by["default", 1.0]["usage"] < by["default", None]["usage"] <= 1.0
+    # read strictly, b's boundary is at 12 deg, before the error bound's stop at 13.5 deg
+    assert [p["arc"] for p in by["strict", 1.0]["passed"]] == ["arc_a_az000", "arc_b_az000"]
