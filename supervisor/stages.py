@@ -72,6 +72,10 @@ class StageConfig:
     localization_timeout: float = 1.0  # s, from capture to result
     consistency_t: float = 0.002  # m; 0 = guard off
     consistency_r: float = math.radians(5.0)  # rad; 0 = guard off
+    # the guard on the step's worst frame instead of its mean (a single gross frame among good ones): m, rad;
+    # 0 = off
+    worst_frame_t: float = 0.0
+    worst_frame_r: float = 0.0
     # the inlier-ratio gate: stop when a step's mean n_inliers / n_matches over its localized frames falls
     # below this (RANSAC near its breakdown: most matches are outliers); 0 = off
     min_inlier_ratio: float = 0.0
@@ -125,6 +129,8 @@ def parse_stage(name: str, n: Node) -> StageConfig:
                                       min_exclusive=True) / 1000.0,
         consistency_t=n.number("consistency_limit_mm", 2.0, min=0.0, max=1000.0) / 1000.0,
         consistency_r=math.radians(n.number("consistency_limit_deg", 5.0, min=0.0, max=180.0)),
+        worst_frame_t=n.number("worst_frame_limit_mm", 0.0, min=0.0, max=1000.0) / 1000.0,
+        worst_frame_r=math.radians(n.number("worst_frame_limit_deg", 0.0, min=0.0, max=180.0)),
         min_inlier_ratio=n.number("min_inlier_ratio", 0.0, min=0.0, max=0.99),
         overrun_budget=n.integer("overrun_budget", 3, min=1, max=1000),
         final_step=n.string("final_step", "whole", choices=FINAL_STEPS),

@@ -210,6 +210,24 @@ def test_consistency_event_logs_the_steps_worst_frame_beside_its_mean(cfg, tmp_p
     assert shifted["drift_mm"] > 0.75 * shifted["worst_drift_mm"]  # both frames off alike
 
 
+def test_worst_frame_limit_stops_at_the_step_with_one_gross_frame_that_the_mean_lets_pass(cfg, tmp_path):
+    """The same slip: the mean guard at 2 mm trips only at the step whose frames are both off (3 deg); the
+    worst-frame limit at 2 mm trips at the mixed step before it (1.5 deg), same latched halt, `on` says which."""
+    import json
+
+    slip = lambda c: _Wrapped(c, after=3, mode="shift")  # noqa: E731
+    mean = _run(cfg, _stage(cfg, consistency_t=0.002, consistency_r=math.radians(5.0)), wrap_camera=slip)
+    assert mean["halt_reason"] == "consistency" and mean["halt_angle_deg"] == pytest.approx(3.0, abs=1e-6)
+    worst = _run(cfg, _stage(cfg, consistency_t=0.002, consistency_r=math.radians(5.0), worst_frame_t=0.002,
+                             worst_frame_r=math.radians(5.0)), wrap_camera=slip, out=tmp_path)
+    assert worst["halt_reason"] == "consistency" and worst["halt_angle_deg"] == pytest.approx(1.5, abs=1e-6)
+    assert worst["max_overshoot_deg"] <= 1e-6 and worst["faults"] == []
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    trip = [e for e in events if e["kind"] == "consistency_guard"]
+    assert len(trip) == 1 and trip[0]["on"] == "worst_frame" and trip[0]["step"] == 1
+    assert trip[0]["drift_mm"] > 2.0 and trip[0]["limit_mm"] == pytest.approx(2.0)
+
+
 def test_inlier_ratio_gate_stops_at_the_step_whose_matches_turned_to_outliers(cfg, tmp_path):
     """The gate reads each step's mean n_inliers / n_matches: here (the sim's real pipeline, whose ratio falls
     from ~0.99 as the view turns away) a limit of 0.96 stops the arm at the first step below it, with its own

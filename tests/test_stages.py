@@ -108,6 +108,9 @@ def test_load_stages_from_file(tmp_path):
          "stop_and_go sampling only"),
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: 1", "stages.fast.min_inlier_ratio", "<= 0.99"),
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: -0.1", "stages.fast.min_inlier_ratio", ">= 0"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    worst_frame_limit_mm: -1", "stages.fast.worst_frame_limit_mm", ">= 0"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    worst_frame_limit_deg: .inf", "stages.fast.worst_frame_limit_deg",
+         "finite"),
     ],
 )
 def test_bad_values_name_file_and_dotted_key(old, new, key, words):
@@ -136,6 +139,13 @@ def test_theta_allowed_is_one_rule():
     assert st.theta_allowed(30.5 * DEG) == pytest.approx(30 * DEG)
     assert st.theta_allowed(None) == pytest.approx(30 * DEG)
     assert st.theta_allowed(1 * DEG) == pytest.approx(-1 * DEG)  # already past: stop now
+
+
+def test_worst_frame_limits_are_converted_once_and_off_by_default():
+    st = stages_from(GOOD.replace("pose_gap_ms: 20", "pose_gap_ms: 20\n    worst_frame_limit_mm: 3\n"
+                                  "    worst_frame_limit_deg: 7.5", 1))
+    assert st["fast"].worst_frame_t == pytest.approx(0.003) and st["fast"].worst_frame_r == pytest.approx(7.5 * DEG)
+    assert (st["slow"].worst_frame_t, st["slow"].worst_frame_r) == (0.0, 0.0)
 
 
 def test_error_bound_keys_are_converted_once_and_optional():

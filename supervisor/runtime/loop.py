@@ -414,26 +414,33 @@ class SupervisorLoop:
         return True
 
     def _check_consistency(self, now: float, step: int, samples: list[Sample]) -> None:
-        """The consistency guard: trip (latched) when the step's mean target-pose drift exceeds the limit."""
+        """The consistency guard: trip (latched) when the step's mean target-pose drift exceeds the stage's
+        `consistency_limit_*`, or its worst frame's drift the `worst_frame_limit_*` (0: that reading off)."""
         errs = [pose_error(s.T_base_cam @ s.T_cam_target, self.T_base_target_model, self.reference_point)
                 for s in samples if s.T_cam_target is not None and s.T_base_cam is not None]
         if not errs:
             return  # nothing localized: n_i = 0 speaks for itself
         e_t = float(np.mean([e[0] for e in errs]))
         e_r = float(np.mean([e[1] for e in errs]))
+        w_t, w_r = max(e[0] for e in errs), max(e[1] for e in errs)
         self.record.consistency.append((now, step, e_t, e_r))
-        # the guard acts on the mean; the step's worst frame is logged beside it (a single gross frame among
-        # good ones moves the mean little and is what a later analysis of the run looks for)
+        # the step's worst frame beside its mean: a single gross frame among good ones moves the mean little
         self.events.emit(now, "consistency", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
-                         worst_drift_mm=1000 * max(e[0] for e in errs),
-                         worst_drift_deg=math.degrees(max(e[1] for e in errs)), n_frames=len(errs))
+                         worst_drift_mm=w_t * 1000, worst_drift_deg=math.degrees(w_r), n_frames=len(errs))
         st = self.stage
-        tripped = (st.consistency_t > 0 and e_t > st.consistency_t) or (st.consistency_r > 0 and e_r > st.consistency_r)
-        if tripped and self._guard_stop is None:
+        on_mean = (st.consistency_t > 0 and e_t > st.consistency_t) or (st.consistency_r > 0 and e_r > st.consistency_r)
+        on_worst = (st.worst_frame_t > 0 and w_t > st.worst_frame_t) or (st.worst_frame_r > 0 and w_r > st.worst_frame_r)
+        if (on_mean or on_worst) and self._guard_stop is None:
+            # the same latched stop and halt reason, whichever reading tripped it (`on` says which)
             self._guard_stop, self._guard_reason = self._stop_point(), "consistency"
-            self.events.emit(now, "consistency_guard", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
-                             limit_mm=st.consistency_t * 1000, limit_deg=math.degrees(st.consistency_r),
-                             s_deg=math.degrees(self.follower.state.s))
+            if on_mean:
+                self.events.emit(now, "consistency_guard", step=step, on="mean", drift_mm=e_t * 1000,
+                                 drift_deg=math.degrees(e_r), limit_mm=st.consistency_t * 1000,
+                                 limit_deg=math.degrees(st.consistency_r), s_deg=math.degrees(self.follower.state.s))
+            else:
+                self.events.emit(now, "consistency_guard", step=step, on="worst_frame", drift_mm=w_t * 1000,
+                                 drift_deg=math.degrees(w_r), limit_mm=st.worst_frame_t * 1000,
+                                 limit_deg=math.degrees(st.worst_frame_r), s_deg=math.degrees(self.follower.state.s))
 
     def _check_inlier_ratio(self, now: float, step: int, samples: list[Sample]) -> None:
         """The inlier-ratio gate: trip (latched, like the guard) when the step's mean n_inliers / n_matches
