@@ -428,19 +428,17 @@ class SupervisorLoop:
         self.events.emit(now, "consistency", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
                          worst_drift_mm=w_t * 1000, worst_drift_deg=math.degrees(w_r), n_frames=len(errs))
         st = self.stage
-        on_mean = (st.consistency_t > 0 and e_t > st.consistency_t) or (st.consistency_r > 0 and e_r > st.consistency_r)
-        on_worst = (st.worst_frame_t > 0 and w_t > st.worst_frame_t) or (st.worst_frame_r > 0 and w_r > st.worst_frame_r)
-        if (on_mean or on_worst) and self._guard_stop is None:
+        readings = (("mean", e_t, e_r, st.consistency_t, st.consistency_r),
+                    ("worst_frame", w_t, w_r, st.worst_frame_t, st.worst_frame_r))
+        # a limit of 0 turns that quantity off; the mean is read first
+        tripped = next((r for r in readings if (r[3] > 0 and r[1] > r[3]) or (r[4] > 0 and r[2] > r[4])), None)
+        if tripped is not None and self._guard_stop is None:
             # the same latched stop and halt reason, whichever reading tripped it (`on` says which)
             self._guard_stop, self._guard_reason = self._stop_point(), "consistency"
-            if on_mean:
-                self.events.emit(now, "consistency_guard", step=step, on="mean", drift_mm=e_t * 1000,
-                                 drift_deg=math.degrees(e_r), limit_mm=st.consistency_t * 1000,
-                                 limit_deg=math.degrees(st.consistency_r), s_deg=math.degrees(self.follower.state.s))
-            else:
-                self.events.emit(now, "consistency_guard", step=step, on="worst_frame", drift_mm=w_t * 1000,
-                                 drift_deg=math.degrees(w_r), limit_mm=st.worst_frame_t * 1000,
-                                 limit_deg=math.degrees(st.worst_frame_r), s_deg=math.degrees(self.follower.state.s))
+            on, d_t, d_r, lim_t, lim_r = tripped
+            self.events.emit(now, "consistency_guard", step=step, on=on, drift_mm=d_t * 1000,
+                             drift_deg=math.degrees(d_r), limit_mm=lim_t * 1000, limit_deg=math.degrees(lim_r),
+                             s_deg=math.degrees(self.follower.state.s))
 
     def _check_inlier_ratio(self, now: float, step: int, samples: list[Sample]) -> None:
         """The inlier-ratio gate: trip (latched, like the guard) when the step's mean n_inliers / n_matches
