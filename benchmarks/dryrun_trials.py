@@ -35,20 +35,20 @@ from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
 from supervisor.dryrun import ORACLE_FRAMES, ORACLE_REFINE, ORACLE_STEP, DryRunSpec  # noqa: E402
 
 
-def _trial(args: tuple[str, float, str, str, str, str | None, bool, int, float, int, int]) -> dict:
+def _trial(args: tuple[str, float, str, str, str, str | None, bool, int, float, int, int, float | None]) -> dict:
     import cv2
 
     cv2.setNumThreads(1)
     from supervisor.config import load_config
     from supervisor.dryrun import DryRunSpec, run_dry_run
 
-    scene, az, sampling, stage, out, config, resume, seed, oracle_step_deg, oracle_frames, oracle_refine = args
+    scene, az, sampling, stage, out, config, resume, seed, oracle_step_deg, oracle_frames, oracle_refine, latency_ms = args
     done = Path(out) / "summary.json"
     if resume and done.is_file():  # a trial an interrupted run finished (same stage, config, seed, oracle: checked)
         s = json.loads(done.read_text())
         if (s.get("stage") == stage and s.get("config_sha256") == load_config(config).sha256
                 and s.get("seed") == seed and s.get("oracle_frames") == oracle_frames
-                and s.get("oracle_refine", 1) == oracle_refine
+                and s.get("oracle_refine", 1) == oracle_refine and s.get("fixed_latency_ms") == latency_ms
                 and abs(s.get("oracle_step_deg", math.nan) - oracle_step_deg) < 1e-9):
             return s
     cfg = load_config(config)
@@ -56,7 +56,7 @@ def _trial(args: tuple[str, float, str, str, str, str | None, bool, int, float, 
     # max executed angle and halt say where it ended) instead of ending the whole suite
     spec = DryRunSpec(stage=stage, azimuth=math.radians(az), sampling=sampling, scene=scene, accept_reachable=True,
                       seed=seed, oracle_step=math.radians(oracle_step_deg), oracle_frames=oracle_frames,
-                      oracle_refine=oracle_refine)
+                      oracle_refine=oracle_refine, latency=None if latency_ms is None else latency_ms / 1000.0)
     return run_dry_run(cfg, spec, Path(out), progress=lambda m: None)
 
 
@@ -134,21 +134,27 @@ def main() -> int:
     ap.add_argument("--oracle-refine", type=int, default=ORACLE_REFINE,
                     help="sample the step before the first position beyond the tolerance again this many times "
                          "finer (default 3; 1: not at all)")
+    ap.add_argument("--fixed-latency-ms", type=float, default=None, metavar="MS",
+                    help="each localization result reaches the loop this long after capture (default: its measured "
+                         "compute time, which follows the load); two settings compared at a fixed latency on the same "
+                         "seed differ by the setting alone (the runs are bit-reproducible)")
     ap.add_argument("--resume", action="store_true", help="reuse trials a previous run of the same stage and config "
                     "finished (their summary.json)")
     a = ap.parse_args()
     try:  # the spec's own check, before any worker starts
         DryRunSpec(stage=a.stage, azimuth=0.0, oracle_step=math.radians(a.oracle_step_deg),
-                   oracle_frames=a.oracle_frames, oracle_refine=a.oracle_refine)
+                   oracle_frames=a.oracle_frames, oracle_refine=a.oracle_refine,
+                   latency=None if a.fixed_latency_ms is None else a.fixed_latency_ms / 1000.0)
     except ValueError as exc:
-        ap.error(f"--oracle-step-deg/--oracle-frames/--oracle-refine: {exc}")
+        ap.error(f"--oracle-step-deg/--oracle-frames/--oracle-refine/--fixed-latency-ms: {exc}")
     out = Path(a.out)
     scenes = (a.scenes or ",".join(SUITES[a.suite])).split(",")
     labels = trial_labels(scenes)
     trials = [(sc, float(az), mode, a.stage, str(trial_dir(out, f"{labels[sc]}_az{int(float(az)):03d}_{mode}")),
-               a.config, a.resume, a.seed, a.oracle_step_deg, a.oracle_frames, a.oracle_refine)
+               a.config, a.resume, a.seed, a.oracle_step_deg, a.oracle_frames, a.oracle_refine, a.fixed_latency_ms)
               for sc in scenes for az in a.azimuths.split(",") for mode in a.modes.split(",")]
-    print(f"{len(trials)} trials, stage {a.stage}, seed {a.seed}", file=sys.stderr)
+    print(f"{len(trials)} trials, stage {a.stage}, seed {a.seed}"
+          + ("" if a.fixed_latency_ms is None else f", fixed latency {a.fixed_latency_ms:g} ms"), file=sys.stderr)
     rows = []
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(a.jobs, mp_context=ctx) as pool:

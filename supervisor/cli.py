@@ -35,6 +35,14 @@ def _finite(text: str) -> float:
     return value
 
 
+def _latency_ms(text: str) -> float:
+    """argparse type: a fixed localization latency in ms, 0 to 10000."""
+    value = _finite(text)
+    if not 0.0 <= value <= 10000.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 10000] ms, got {text!r}")
+    return value
+
+
 def cmd_dataset_generate(args: argparse.Namespace) -> int:
     from sim.scene import load_scene
     from supervisor.dataset.format import DATASET_COMMAND, DATASET_FILES
@@ -214,6 +222,10 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
     from supervisor.dryrun import DryRunSpec, load_motion, run_dry_run, run_replay
     from supervisor.outputs import StagedOutput, check_target
 
+    if args.fixed_latency_ms is not None and (args.realtime or args.replay):
+        print("error: --fixed-latency-ms is for a rendered run in simulated time (not with --realtime or --replay)",
+              file=sys.stderr)
+        return EXIT_USAGE
     out = check_target(args.out, "dry-run", known=DRY_RUN_FILES)  # before any work; staged below
     cfg = _config(args)
     if args.replay:
@@ -226,7 +238,8 @@ def cmd_dry_run(args: argparse.Namespace) -> int:
         azimuth = math.radians(args.azimuth) if args.azimuth is not None else motion["azimuth"]
         spec = DryRunSpec(stage=args.stage or cfg.default_stage, azimuth=azimuth, sampling=args.sampling,
                           scene=args.scene or motion["scene"], seed=args.seed, oracle=not args.no_oracle,
-                          sweep=motion["sweep"], accept_reachable=args.reachable)
+                          sweep=motion["sweep"], accept_reachable=args.reachable,
+                          latency=None if args.fixed_latency_ms is None else args.fixed_latency_ms / 1000.0)
         with StagedOutput(out, "dry-run", known=DRY_RUN_FILES) as staged:
             s = run_dry_run(cfg, spec, staged.path, print, realtime=args.realtime)
     print(f"stage {s['stage']} ({s['sampling']}), scene {s['scene']}, azimuth {s['azimuth_deg']:g} deg: "
@@ -462,6 +475,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "paced ticks) instead of simulated time")
     dr.add_argument("--reachable", action="store_true",
                     help="an arc the arm cannot complete runs its reachable part instead of being refused")
+    dr.add_argument("--fixed-latency-ms", type=_latency_ms, default=None, metavar="MS",
+                    help="each localization result reaches the loop this long after capture (default: its measured "
+                         "compute time, which follows the machine's load); the run is then bit-reproducible")
     dr.add_argument("-o", "--out", default="out/dry-run")
     dr.set_defaults(func=cmd_dry_run)
 

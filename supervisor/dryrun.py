@@ -64,8 +64,14 @@ class DryRunSpec:
     oracle_step: float = ORACLE_STEP  # rad
     oracle_frames: int = ORACLE_FRAMES
     oracle_refine: int = ORACLE_REFINE
+    # s; each result reaches the loop this long after capture (None: its measured compute time, which follows
+    # the machine's load). A fixed latency makes a simulated run bit-reproducible: two settings compared on the
+    # same renders then differ by the setting alone.
+    latency: float | None = None
 
     def __post_init__(self) -> None:
+        if self.latency is not None and not (math.isfinite(self.latency) and 0.0 <= self.latency <= 10.0):
+            raise ValueError(f"fixed latency must be in [0, 10000] ms, got {self.latency * 1000:g}")
         if not (math.isfinite(self.oracle_step) and 0 < self.oracle_step <= math.radians(45.0)):
             raise ValueError(f"oracle step must be in (0, 45] deg, got {math.degrees(self.oracle_step):g}")
         if isinstance(self.oracle_frames, bool) or not isinstance(self.oracle_frames, int) or self.oracle_frames < 1:
@@ -106,6 +112,8 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
     """
     wall0 = time.monotonic()
     _require_sim(cfg)
+    if realtime and spec.latency is not None:
+        raise ValueError("a fixed latency is for simulated time: on the real clock results come when they are ready")
     stage: StageConfig = cfg.stage(spec.stage)
     if spec.sampling is not None:
         stage = dataclasses.replace(stage, sampling=spec.sampling)
@@ -118,7 +126,7 @@ def run_dry_run(cfg: Config, spec: DryRunSpec, out: Path | None, progress=print,
              + (" (real time)" if realtime else ""))
     drivers = open_drivers(cfg, realtime=realtime, scene=scene, seed=spec.seed)
     events = EventLog(None if out is None else out / "events.jsonl")
-    sup = Supervisor(cfg, drivers, events, stage=stage, latency_scale=latency_scale)
+    sup = Supervisor(cfg, drivers, events, stage=stage, latency_scale=latency_scale, latency=spec.latency)
     try:
         events.emit(drivers.clock.now(), "config", sha256=cfg.sha256, file=str(cfg.file), stage=stage.name)
         T_target_box, half = scene.target_box_in_target()
@@ -368,6 +376,8 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
         "max_consistency_drift_mm": 1000 * max((c[2] for c in record.consistency), default=0.0),
         "max_consistency_drift_deg": math.degrees(max((c[3] for c in record.consistency), default=0.0)),
         "faults": [e["fault"] for e in events.of_kind("fault")],
+        # null: each result came its measured compute time after capture (the machine's load shows)
+        "fixed_latency_ms": None if getattr(spec, "latency", None) is None else spec.latency * 1000,
         "wall_time_s": wall_time,
         **({"realtime": True} if realtime else {"simulated_time_s": clock_time}),
     }

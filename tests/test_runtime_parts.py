@@ -25,7 +25,7 @@ from supervisor.motion.paths import ArcPath
 from supervisor.motion.plan import check_path
 from supervisor.runtime.capture import CaptureThread
 from supervisor.runtime.events import EventLog
-from supervisor.runtime.worker import FrameJob, ProcessWorker, ThreadWorker
+from supervisor.runtime.worker import FrameJob, InlineWorker, ProcessWorker, ThreadWorker
 
 
 # -- capture thread -------------------------------------------------------------------------
@@ -107,6 +107,24 @@ def _jobs(ds, model):
         hint = predict_target_pose(T, ds.model_images[0].T_base_cam(ds.T_flange_cam), model.T_cam0_target)
         out.append((FrameJob(float(i), i + 1, ds.load_image(rec), T, rec.position, {}), hint))
     return out
+
+
+def test_inline_worker_at_a_fixed_latency_releases_each_result_exactly_that_late(recording):
+    """A fixed latency replaces the measured compute time: results come at capture + latency, whatever the load
+    (what makes two simulated runs of the same renders comparable step for step)."""
+    cfg, ds, model = recording
+    jobs = _jobs(ds, model)[:2]
+    worker = InlineWorker(model, cfg.localization, latency_scale=1e6, latency=0.12)  # the scale is not used
+    for j, h in jobs:
+        assert worker.submit(j, h)
+    assert worker.poll(jobs[0][0].t + 0.1199) == [] and worker.busy
+    first = worker.poll(jobs[0][0].t + 0.12)
+    assert [r.job.seq for r in first] == [jobs[0][0].seq] and first[0].ready_t == jobs[0][0].t + 0.12
+    assert [r.ready_t for r in worker.poll(jobs[1][0].t + 0.12)] == [jobs[1][0].t + 0.12]
+    assert not worker.busy
+    for bad in (-0.01, math.inf, math.nan):
+        with pytest.raises(ValueError, match="fixed latency"):
+            InlineWorker(model, cfg.localization, latency=bad)
 
 
 @pytest.mark.parametrize("kind", ["thread", "process"])

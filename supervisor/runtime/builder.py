@@ -272,13 +272,16 @@ class Supervisor:
     """A configured supervisor on its drivers: the model, the stage, planned and gated motions."""
 
     def __init__(self, cfg: Config, drivers: Drivers, events: EventLog, *, stage: str | StageConfig | None = None,
-                 latency_scale: float = 1.0, workers: int = 2, worker: str | None = None) -> None:
+                 latency_scale: float = 1.0, latency: float | None = None, workers: int = 2,
+                 worker: str | None = None) -> None:
         """`worker`: where localization runs: "inline" (simulated time; the default there), "process"
-        (separate processes, the default on the real clock: no GIL shared with the tick) or "thread"."""
+        (separate processes, the default on the real clock: no GIL shared with the tick) or "thread".
+        `latency_scale`, `latency`: the inline worker's result delay (`InlineWorker`)."""
         self.cfg = cfg
         self.drivers = drivers
         self.events = events
         self.latency_scale = latency_scale
+        self.latency = latency
         if getattr(drivers.camera, "renders_on_host", False) and drivers.realtime:
             # A simulated camera takes a core of its own to render: leave it one (2 cores: 1 localizer).
             workers = min(workers, max(1, (os.cpu_count() or 2) - 1))
@@ -569,7 +572,7 @@ class Supervisor:
             return self._process_worker
         if self.worker_kind == "thread":
             return ThreadWorker(self.model, cfg.localization, d.clock, threads=self.workers)
-        return InlineWorker(self.model, cfg.localization, self.latency_scale)
+        return InlineWorker(self.model, cfg.localization, self.latency_scale, self.latency)
 
     def _fits_for_run(self, predictor) -> ProcessFits:
         """The long-lived fit process (started at the first real-clock run), handed this run's predictor."""

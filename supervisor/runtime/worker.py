@@ -5,8 +5,9 @@ The control loop never waits for SIFT. Two workers implement one interface
 
 - `InlineWorker` computes at once but releases each result only when the clock
   reaches capture time + the measured compute latency, so under a simulated clock
-  the loop sees results exactly as late as a real worker would deliver them, and a
-  dry-run is deterministic.
+  the loop sees results exactly as late as a real worker would deliver them. The
+  measured latency follows the machine's load; a fixed latency (`latency`) makes a
+  dry-run bit-reproducible, e.g. to compare two settings on the same renders.
 - `ThreadWorker` runs a pool of threads (OpenCV's SIFT releases the GIL), each with
   its own `Localizer`, behind a bounded queue: a frame offered while the queue is
   full is dropped and counted, never waited for.
@@ -20,6 +21,7 @@ pool, frames submitted after a refinement request wait for the new model.
 
 from __future__ import annotations
 
+import math
 import os
 import queue
 import threading
@@ -87,9 +89,15 @@ class _Refinement:
 class InlineWorker:
     """Synchronous localization whose results are released after their real compute latency."""
 
-    def __init__(self, model: TargetModel, settings: LocalizerSettings, latency_scale: float = 1.0) -> None:
+    def __init__(self, model: TargetModel, settings: LocalizerSettings, latency_scale: float = 1.0,
+                 latency: float | None = None) -> None:
+        """`latency` (s): release every result this long after capture instead of after the measured
+        compute time times `latency_scale` (None)."""
+        if latency is not None and not (math.isfinite(latency) and latency >= 0.0):
+            raise ValueError(f"fixed latency must be a finite number of seconds >= 0, got {latency!r}")
         self.localizer = Localizer(model, settings)
         self.latency_scale = latency_scale
+        self.latency = latency
         self._refinement = _Refinement(model, settings)
         self._pending: list[JobResult] = []
         self._notes: list[dict[str, Any]] = []
@@ -102,7 +110,7 @@ class InlineWorker:
     def submit(self, job: FrameJob, hint: np.ndarray | None) -> bool:
         t0 = time.perf_counter()
         res = self.localizer.localize(job.image, hint)
-        latency = (time.perf_counter() - t0) * self.latency_scale
+        latency = (time.perf_counter() - t0) * self.latency_scale if self.latency is None else self.latency
         self._pending.append(JobResult(job, res, job.t + latency))
         return True
 
