@@ -1,0 +1,124 @@
+"""Two dry-run trial runs on the same seed compared arc by arc: a shipped stage against a candidate setting.
+
+Run both with `benchmarks/dryrun_trials.py --fixed-latency-ms MS` on the same `--seed`: each run is then
+bit-reproducible, and an arc can only halt differently where the setting acted. This reads each trial's
+`summary.json` (so a run still going is compared on the arcs both have finished) and `events.jsonl` (the
+consistency guard's trips, with the reading that tripped it: `mean` or `worst_frame`), and reports per run
+the incursions (refined and coarse judge), the mean envelope usage, the halt reasons, the largest overshoot
+and the faults; then every arc whose halt differs, with the guard trips of the candidate run. An arc that
+differs with no guard trip in the candidate run is flagged: at a fixed latency that means the two runs are
+not comparable (a determinism failure, or the setting acted elsewhere than the guard).
+
+    python benchmarks/compare_trials.py RUN_A RUN_B [-o report.json]
+
+Reports, never passes or fails (exit 0; 2 on an unreadable run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+
+def load_run(run: Path) -> dict[str, dict]:
+    """Every finished trial of a `dryrun_trials.py` output directory, by trial name, each with its guard trips
+    (`_trips`: (reading, arc angle in deg)). A missing directory or a malformed file is refused naming it."""
+    if not run.is_dir():
+        raise ValueError(f"{run}: not a trial run directory")
+    rows: dict[str, dict] = {}
+    for d in sorted(p for p in run.iterdir() if p.is_dir()):
+        s = d / "summary.json"
+        if not s.is_file():
+            continue  # a trial still running
+        try:
+            r = json.loads(s.read_text())
+            trips = []
+            ev = d / "events.jsonl"
+            for line in (ev.read_text().splitlines() if ev.is_file() else ()):
+                e = json.loads(line)
+                if e.get("kind") == "consistency_guard":
+                    trips.append((str(e.get("on", "mean")), float(e.get("s_deg", float("nan")))))
+        except (json.JSONDecodeError, OSError) as exc:
+            raise ValueError(f"{d}: unreadable trial ({exc})") from exc
+        for key in ("halt_angle_deg", "incursion", "envelope_usage", "halt_reason"):
+            if key not in r:
+                raise ValueError(f"{s}: key {key!r} missing (not judged by an oracle?)")
+        r["_trips"] = trips
+        rows[d.name] = r
+    return rows
+
+
+def run_stats(rows: dict[str, dict], names: list[str]) -> dict:
+    """Totals over the named trials of one run."""
+    rs = [rows[k] for k in names]
+    usage = [r["envelope_usage"] for r in rs if r["envelope_usage"] is not None]
+    coarse = [r.get("coarse_judge") or {"incursion": r["incursion"], "envelope_usage": r["envelope_usage"]}
+              for r in rs]
+    c_usage = [c["envelope_usage"] for c in coarse if c.get("envelope_usage") is not None]
+    over = [r["max_overshoot_deg"] for r in rs if r.get("max_overshoot_deg") is not None]
+    return {
+        "trials": len(rs),
+        "incursions": [k for k in names if rows[k]["incursion"]],
+        "mean_envelope_usage": sum(usage) / len(usage) if usage else None,
+        "coarse_incursions": sum(bool(c.get("incursion")) for c in coarse),
+        "coarse_mean_envelope_usage": sum(c_usage) / len(c_usage) if c_usage else None,
+        "max_overshoot_deg": max(over) if over else None,
+        "faults": sum(len(r.get("faults") or ()) for r in rs),
+        "halt_reasons": dict(Counter(r["halt_reason"] for r in rs)),
+    }
+
+
+def compare(a: dict[str, dict], b: dict[str, dict], eps_deg: float = 1e-9) -> dict:
+    """The two runs on the trials both finished, and the arcs whose halt differs (`unexplained`: no guard trip
+    in run b)."""
+    names = sorted(set(a) & set(b))
+    differ = []
+    for k in names:
+        ha, hb = a[k]["halt_angle_deg"], b[k]["halt_angle_deg"]
+        if abs(ha - hb) > eps_deg:
+            differ.append({"trial": k, "halt_a_deg": ha, "halt_b_deg": hb, "reason_a": a[k]["halt_reason"],
+                           "reason_b": b[k]["halt_reason"], "trips_b": b[k]["_trips"],
+                           "boundary_deg": a[k].get("actual_boundary_judged_deg"),
+                           "unexplained": not b[k]["_trips"]})
+    return {"common_trials": len(names), "finished": [len(a), len(b)],
+            "a": run_stats(a, names), "b": run_stats(b, names), "differing": differ,
+            "comparable": not any(d["unexplained"] for d in differ)}
+
+
+def _pct(v: float | None) -> str:
+    return "n/a" if v is None else f"{100 * v:.2f}%"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run_a", type=Path, help="the reference run (e.g. the shipped stage)")
+    p.add_argument("run_b", type=Path, help="the candidate run, same seed and fixed latency")
+    p.add_argument("-o", "--out", type=Path, help="also write the comparison as JSON")
+    args = p.parse_args(argv)
+    try:
+        a, b = load_run(args.run_a), load_run(args.run_b)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    rep = compare(a, b)
+    print(f"{rep['common_trials']} trials in both ({rep['finished'][0]} / {rep['finished'][1]} finished)")
+    for label, run in (("a", args.run_a), ("b", args.run_b)):
+        s = rep[label]
+        print(f"{run}: {len(s['incursions'])} incursions {s['incursions']}; usage {_pct(s['mean_envelope_usage'])} "
+              f"(coarse judge {_pct(s['coarse_mean_envelope_usage'])}, {s['coarse_incursions']} incursions); "
+              f"max overshoot {s['max_overshoot_deg']} deg; faults {s['faults']}; halts {s['halt_reasons']}")
+    for d in rep["differing"]:
+        print(f"  {d['trial']}: {d['halt_a_deg']:.2f} ({d['reason_a']}) vs {d['halt_b_deg']:.2f} ({d['reason_b']}), "
+              f"guard trips {d['trips_b']}, boundary {d['boundary_deg']}"
+              + ("  DIFFERS WITHOUT A GUARD TRIP" if d["unexplained"] else ""))
+    print("comparable: " + ("yes" if rep["comparable"] else "NO (an arc differs without a guard trip)"))
+    if args.out:
+        args.out.write_text(json.dumps(rep, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

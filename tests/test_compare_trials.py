@@ -1,0 +1,70 @@
+"""benchmarks/compare_trials.py: two dry-run trial runs compared arc by arc, read from their trial directories."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+
+from supervisor.paths import REPO_ROOT
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("compare_trials", REPO_ROOT / "benchmarks" / "compare_trials.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _trial(run, name, halt, boundary, reason, trips=(), faults=()):
+    d = run / name
+    d.mkdir(parents=True)
+    (d / "summary.json").write_text(json.dumps({
+        "halt_angle_deg": halt, "actual_boundary_judged_deg": boundary, "incursion": halt > boundary,
+        "envelope_usage": halt / boundary, "halt_reason": reason, "max_overshoot_deg": -1e-6,
+        "faults": list(faults)}))
+    events = [{"kind": "start"}] + [{"kind": "consistency_guard", "on": on, "s_deg": s} for on, s in trips]
+    (d / "events.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
+
+
+def test_counts_each_run_and_names_the_arcs_a_guard_trip_moved(tmp_path, capsys):
+    mod = _load()
+    a, b = tmp_path / "ship", tmp_path / "limit"
+    _trial(a, "x_az000", 30.0, 32.0, "boundary")
+    _trial(b, "x_az000", 30.0, 32.0, "boundary")
+    _trial(a, "y_az090", 41.0, 40.0, "boundary")  # an incursion the candidate's worst-frame trip stopped
+    _trial(b, "y_az090", 36.0, 40.0, "consistency", trips=[("worst_frame", 36.0)])
+    (a / "z_az270").mkdir()  # still running in a: compared on the trials both finished
+    _trial(b, "z_az270", 20.0, 25.0, "boundary")
+    rep = mod.compare(mod.load_run(a), mod.load_run(b))
+    assert rep["common_trials"] == 2 and rep["finished"] == [2, 3]
+    assert rep["a"]["incursions"] == ["y_az090"] and rep["b"]["incursions"] == []
+    assert abs(rep["a"]["mean_envelope_usage"] - (30 / 32 + 41 / 40) / 2) < 1e-12
+    assert rep["b"]["halt_reasons"] == {"boundary": 1, "consistency": 1}
+    assert [d["trial"] for d in rep["differing"]] == ["y_az090"]
+    assert rep["differing"][0]["trips_b"] == [("worst_frame", 36.0)] and rep["comparable"]
+    assert mod.main([str(a), str(b), "-o", str(tmp_path / "rep.json")]) == 0
+    assert "comparable: yes" in capsys.readouterr().out
+    assert json.loads((tmp_path / "rep.json").read_text())["b"]["incursions"] == []
+
+
+def test_an_arc_that_differs_without_a_guard_trip_marks_the_runs_not_comparable(tmp_path, capsys):
+    mod = _load()
+    a, b = tmp_path / "a", tmp_path / "b"
+    _trial(a, "x_az000", 30.0, 32.0, "boundary")
+    _trial(b, "x_az000", 29.5, 32.0, "inlier_ratio")
+    rep = mod.compare(mod.load_run(a), mod.load_run(b))
+    assert not rep["comparable"] and rep["differing"][0]["unexplained"]
+    mod.main([str(a), str(b)])
+    assert "DIFFERS WITHOUT A GUARD TRIP" in capsys.readouterr().out
+
+
+def test_a_trial_without_a_judge_or_a_missing_run_is_refused_naming_it(tmp_path, capsys):
+    mod = _load()
+    d = tmp_path / "run" / "x_az000"
+    d.mkdir(parents=True)
+    (d / "summary.json").write_text(json.dumps({"halt_angle_deg": 30.0, "halt_reason": "boundary"}))
+    assert mod.main([str(tmp_path / "run"), str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "summary.json" in err and "'incursion'" in err
+    assert mod.main([str(tmp_path / "nowhere"), str(tmp_path / "run")]) == 2
+    assert "nowhere: not a trial run directory" in capsys.readouterr().err
