@@ -22,6 +22,10 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from dryrun_trials import trial_totals  # noqa: E402  (the totals dryrun_trials.py writes to trials.json)
+
 
 def load_run(run: Path) -> dict[str, dict]:
     """Every finished trial of a `dryrun_trials.py` output directory, by trial name, each with its guard trips
@@ -43,7 +47,8 @@ def load_run(run: Path) -> dict[str, dict]:
                     trips.append((str(e.get("on", "mean")), float(e.get("s_deg", float("nan")))))
         except (json.JSONDecodeError, OSError) as exc:
             raise ValueError(f"{d}: unreadable trial ({exc})") from exc
-        for key in ("halt_angle_deg", "incursion", "envelope_usage", "halt_reason"):
+        for key in ("halt_angle_deg", "incursion", "envelope_usage", "halt_reason", "max_overshoot_deg",
+                    "revision_shortfall_deg", "sampling"):
             if key not in r:
                 raise ValueError(f"{s}: key {key!r} missing (not judged by an oracle?)")
         r["_trips"] = trips
@@ -52,20 +57,16 @@ def load_run(run: Path) -> dict[str, dict]:
 
 
 def run_stats(rows: dict[str, dict], names: list[str]) -> dict:
-    """Totals over the named trials of one run."""
+    """Totals over the named trials of one run, as `dryrun_trials.py` sums them, with the incursions named."""
     rs = [rows[k] for k in names]
-    usage = [r["envelope_usage"] for r in rs if r["envelope_usage"] is not None]
-    coarse = [r.get("coarse_judge") or {"incursion": r["incursion"], "envelope_usage": r["envelope_usage"]}
-              for r in rs]
-    c_usage = [c["envelope_usage"] for c in coarse if c.get("envelope_usage") is not None]
-    over = [r["max_overshoot_deg"] for r in rs if r.get("max_overshoot_deg") is not None]
+    t = trial_totals(rs)
     return {
-        "trials": len(rs),
+        "trials": t["trials"],
         "incursions": [k for k in names if rows[k]["incursion"]],
-        "mean_envelope_usage": sum(usage) / len(usage) if usage else None,
-        "coarse_incursions": sum(bool(c.get("incursion")) for c in coarse),
-        "coarse_mean_envelope_usage": sum(c_usage) / len(c_usage) if c_usage else None,
-        "max_overshoot_deg": max(over) if over else None,
+        "mean_envelope_usage": t["mean_envelope_usage"],
+        "coarse_incursions": t["coarse_judge"]["incursions"],
+        "coarse_mean_envelope_usage": t["coarse_judge"]["mean_envelope_usage"],
+        "max_overshoot_deg": t["max_overshoot_deg"],
         "faults": sum(len(r.get("faults") or ()) for r in rs),
         "halt_reasons": dict(Counter(r["halt_reason"] for r in rs)),
     }

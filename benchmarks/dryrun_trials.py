@@ -114,6 +114,29 @@ def plot_trials(rows: list[dict], path: Path) -> Path:
     return path
 
 
+def trial_totals(rows: list[dict]) -> dict:
+    """The totals of a set of judged trials (their summary.json rows): incursions, overshoot, revision
+    shortfall, envelope usage, and the same trials by the oracle's coarse positions alone."""
+    inc = sum(s["incursion"] for s in rows)
+    over = [s["max_overshoot_deg"] for s in rows if s["max_overshoot_deg"] is not None]
+    usage = [s["envelope_usage"] for s in rows if s["envelope_usage"] is not None]
+    safe_usage = [s["envelope_usage"] for s in rows if s["envelope_usage"] is not None and not s["incursion"]]
+    # a trial with nothing refined: its own verdict
+    coarse = [s.get("coarse_judge") or {"incursion": s["incursion"], "envelope_usage": s["envelope_usage"]}
+              for s in rows]
+    c_usage = [c["envelope_usage"] for c in coarse if c["envelope_usage"] is not None]
+    return {"trials": len(rows), "incursions": inc, "max_overshoot_deg": max(over) if over else None,
+            "trials_with_overshoot": sum(o > 1e-6 for o in over),
+            "trials_with_revision_shortfall": sum(s["revision_shortfall_deg"] > 1e-6 for s in rows),
+            "max_revision_shortfall_deg": max((s["revision_shortfall_deg"] for s in rows), default=None),
+            "incursions_by_mode": {m: sum(s["incursion"] for s in rows if s["sampling"] == m)
+                                   for m in sorted({s["sampling"] for s in rows})},
+            "mean_envelope_usage": sum(usage) / len(usage) if usage else None,
+            "mean_envelope_usage_without_incursion": sum(safe_usage) / len(safe_usage) if safe_usage else None,
+            "coarse_judge": {"incursions": sum(c["incursion"] for c in coarse),
+                             "mean_envelope_usage": sum(c_usage) / len(c_usage) if c_usage else None}}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-o", "--out", default="out/trials")
@@ -174,26 +197,8 @@ def main() -> int:
               f"{s['actual_boundary_judged_deg']:>7.2f} {'YES' if s['incursion'] else 'no':>5} "
               f"{cell(s['max_overshoot_deg'], '+.4f'):>9} {s['revision_shortfall_deg']:>8.3f} "
               f"{100 * s['envelope_usage']:>5.0f}%  {s['halt_reason']}")
-    n = len(rows)
-    inc = sum(s["incursion"] for s in rows)
-    over = [s["max_overshoot_deg"] for s in rows if s["max_overshoot_deg"] is not None]
-    usage = [s["envelope_usage"] for s in rows if s["envelope_usage"] is not None]
-    safe_usage = [s["envelope_usage"] for s in rows if s["envelope_usage"] is not None and not s["incursion"]]
-    summary = {"trials": n, "incursions": inc, "max_overshoot_deg": max(over) if over else None,
-               "trials_with_overshoot": sum(o > 1e-6 for o in over),
-               "trials_with_revision_shortfall": sum(s["revision_shortfall_deg"] > 1e-6 for s in rows),
-               "max_revision_shortfall_deg": max((s["revision_shortfall_deg"] for s in rows), default=None),
-               "incursions_by_mode": {m: sum(s["incursion"] for s in rows if s["sampling"] == m)
-                                      for m in sorted({s["sampling"] for s in rows})},
-               "mean_envelope_usage": sum(usage) / len(usage) if usage else None,
-               "mean_envelope_usage_without_incursion": sum(safe_usage) / len(safe_usage) if safe_usage else None,
+    summary = {**trial_totals(rows),
                "oracle": {"step_deg": a.oracle_step_deg, "frames": a.oracle_frames, "refine": a.oracle_refine}}
-    # the same trials by the oracle's coarse positions alone (a trial with nothing refined: its own verdict)
-    coarse = [s.get("coarse_judge") or {"incursion": s["incursion"], "envelope_usage": s["envelope_usage"]}
-              for s in rows]
-    c_usage = [c["envelope_usage"] for c in coarse if c["envelope_usage"] is not None]
-    summary["coarse_judge"] = {"incursions": sum(c["incursion"] for c in coarse),
-                               "mean_envelope_usage": sum(c_usage) / len(c_usage) if c_usage else None}
     print(json.dumps(summary, indent=1))
     out.mkdir(parents=True, exist_ok=True)
     (out / "trials.json").write_text(json.dumps({"summary": summary, "trials": rows}, indent=1))

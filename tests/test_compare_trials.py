@@ -21,7 +21,7 @@ def _trial(run, name, halt, boundary, reason, trips=(), faults=()):
     (d / "summary.json").write_text(json.dumps({
         "halt_angle_deg": halt, "actual_boundary_judged_deg": boundary, "incursion": halt > boundary,
         "envelope_usage": halt / boundary, "halt_reason": reason, "max_overshoot_deg": -1e-6,
-        "faults": list(faults)}))
+        "revision_shortfall_deg": 0.0, "sampling": "stop_and_go", "faults": list(faults)}))
     events = [{"kind": "start"}] + [{"kind": "consistency_guard", "on": on, "s_deg": s} for on, s in trips]
     (d / "events.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
 
