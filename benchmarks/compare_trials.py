@@ -5,9 +5,11 @@ bit-reproducible, and an arc can only halt differently where the setting acted. 
 `summary.json` (so a run still going is compared on the arcs both have finished) and `events.jsonl` (the
 consistency guard's trips, with the reading that tripped it: `mean` or `worst_frame`), and reports per run
 the incursions (refined and coarse judge), the mean envelope usage, the halt reasons, the largest overshoot
-and the faults; then every arc whose halt differs, with the guard trips of the candidate run. An arc that
-differs with no guard trip in the candidate run is flagged: at a fixed latency that means the two runs are
-not comparable (a determinism failure, or the setting acted elsewhere than the guard).
+and the faults; then every arc whose halt differs, with the guard trips of both runs and the stage settings
+the two trials differ in beyond the guard's limits (`SETTINGS`, from each summary). An arc is explained by
+such a setting, or else by its guard trips differing between the runs. One that differs with the same trips
+in both runs and no other setting changed is flagged: at a fixed latency the two runs are then not
+comparable (a determinism failure).
 
     python benchmarks/compare_trials.py RUN_A RUN_B [-o report.json]
 
@@ -25,6 +27,11 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from dryrun_trials import trial_totals  # noqa: E402  (the totals dryrun_trials.py writes to trials.json)
+
+
+# what a trial's summary records of its stage, beyond the guard's limits, that can move a halt by itself
+SETTINGS = ("predictor", "variant", "n_t", "step_deg", "margin_deg", "error_kappa", "min_inlier_ratio",
+            "sampling", "seed", "fixed_latency_ms")
 
 
 def load_run(run: Path) -> dict[str, dict]:
@@ -73,17 +80,18 @@ def run_stats(rows: dict[str, dict], names: list[str]) -> dict:
 
 
 def compare(a: dict[str, dict], b: dict[str, dict], eps_deg: float = 1e-9) -> dict:
-    """The two runs on the trials both finished, and the arcs whose halt differs (`unexplained`: no guard trip
-    in run b)."""
+    """The two runs on the trials both finished, and the arcs whose halt differs (`unexplained`: the same guard
+    trips in both runs and no setting of SETTINGS changed)."""
     names = sorted(set(a) & set(b))
     differ = []
     for k in names:
         ha, hb = a[k]["halt_angle_deg"], b[k]["halt_angle_deg"]
         if abs(ha - hb) > eps_deg:
+            settings = [key for key in SETTINGS if a[k].get(key) != b[k].get(key)]
             differ.append({"trial": k, "halt_a_deg": ha, "halt_b_deg": hb, "reason_a": a[k]["halt_reason"],
-                           "reason_b": b[k]["halt_reason"], "trips_b": b[k]["_trips"],
-                           "boundary_deg": a[k].get("actual_boundary_judged_deg"),
-                           "unexplained": not b[k]["_trips"]})
+                           "reason_b": b[k]["halt_reason"], "trips_a": a[k]["_trips"], "trips_b": b[k]["_trips"],
+                           "settings_differ": settings, "boundary_deg": a[k].get("actual_boundary_judged_deg"),
+                           "unexplained": not settings and a[k]["_trips"] == b[k]["_trips"]})
     return {"common_trials": len(names), "finished": [len(a), len(b)],
             "a": run_stats(a, names), "b": run_stats(b, names), "differing": differ,
             "comparable": not any(d["unexplained"] for d in differ)}
@@ -112,10 +120,12 @@ def main(argv: list[str] | None = None) -> int:
               f"(coarse judge {_pct(s['coarse_mean_envelope_usage'])}, {s['coarse_incursions']} incursions); "
               f"max overshoot {s['max_overshoot_deg']} deg; faults {s['faults']}; halts {s['halt_reasons']}")
     for d in rep["differing"]:
+        why = f", settings {d['settings_differ']}" if d["settings_differ"] else ""
         print(f"  {d['trial']}: {d['halt_a_deg']:.2f} ({d['reason_a']}) vs {d['halt_b_deg']:.2f} ({d['reason_b']}), "
-              f"guard trips {d['trips_b']}, boundary {d['boundary_deg']}"
-              + ("  DIFFERS WITHOUT A GUARD TRIP" if d["unexplained"] else ""))
-    print("comparable: " + ("yes" if rep["comparable"] else "NO (an arc differs without a guard trip)"))
+              f"guard trips {d['trips_a']} vs {d['trips_b']}{why}, boundary {d['boundary_deg']}"
+              + ("  DIFFERS WITH THE SAME GUARD TRIPS" if d["unexplained"] else ""))
+    print("comparable: "
+          + ("yes" if rep["comparable"] else "NO (an arc differs with the same guard trips and settings)"))
     if args.out:
         args.out.write_text(json.dumps(rep, indent=1))
     return 0

@@ -3,9 +3,10 @@
 `supervisor tune` chooses a point by cross-validation; this asks the plainer question of a shipped or
 candidate point: on these recordings (`benchmark generate` suites, localized into `--cache`, e.g. an
 `evaluate` OUT/cache), which arcs would it pass, and what share of their envelope would it use? The stage's
-variant, `n_t`, guard (as a fraction of the tolerance), inlier-ratio gate and last step come from the
-config; `--kappas` lists the error bound's kappas to replay beside the stage's own ("off": none). Both
-readings of the boundary are reported (`--strict-boundary` in README, "Tuning a stage for a tolerance").
+variant, `n_t`, guard (its mean and worst-frame limits, as fractions of the tolerance), inlier-ratio gate and
+last step come from the config; `--kappas` lists the error bound's kappas to replay beside the stage's own
+("off": none). Both readings of the boundary are reported (`--strict-boundary` in README, "Tuning a stage
+for a tolerance").
 
     python benchmarks/replay_stage.py BENCH --cache OUT/cache [--stage explore] [--tolerance 4mm_10deg]
         [--kappas 0.5,1,off] [--config FILE] [-o report.json]
@@ -27,7 +28,8 @@ from supervisor.config import load_config
 from supervisor.errors import ConfigError, DatasetError
 from supervisor.evaluation.experiments import TOLERANCES
 from supervisor.evaluation.metrics import INCURSION_EPS
-from supervisor.evaluation.tune import GUARD_FRACTIONS, INLIER_RATIOS, Grid, OperatingPoint, load_recordings
+from supervisor.evaluation.tune import (GUARD_FRACTIONS, INLIER_RATIOS, WORST_FRACTIONS, Grid, OperatingPoint,
+                                        load_recordings)
 from supervisor.prediction.errorbound import KAPPAS
 
 
@@ -47,8 +49,13 @@ def stage_point(cfg, stage: str, tolerance: str) -> tuple[OperatingPoint, float 
     guard = min(GUARD_FRACTIONS, key=lambda g: abs(g - guard))
     if st.min_inlier_ratio not in INLIER_RATIOS:
         raise ConfigError(where, f"stages.{stage}.min_inlier_ratio", f"expected one of {INLIER_RATIOS}")
+    worsts = {st.worst_frame_t / tol_t, st.worst_frame_r / tol_r}
+    worst = min(WORST_FRACTIONS, key=lambda w: abs(w - next(iter(worsts))))
+    if len(worsts) != 1 or abs(worst - next(iter(worsts))) > 1e-9:
+        raise ConfigError(where, f"stages.{stage}.worst_frame_limit_mm",
+                          f"the worst-frame limit must be one of {WORST_FRACTIONS} x the tolerance in both quantities")
     final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
-    return OperatingPoint(st.variant, st.n_t, guard, st.error_kappa, st.min_inlier_ratio), final_margin
+    return OperatingPoint(st.variant, st.n_t, guard, st.error_kappa, st.min_inlier_ratio, worst), final_margin
 
 
 def replay(arcs, point: OperatingPoint, final_margin: float | None, hard_limit: float, tolerance: str,
@@ -56,9 +63,9 @@ def replay(arcs, point: OperatingPoint, final_margin: float | None, hard_limit: 
     rows = []
     for strict in (False, True):
         g = Grid(arcs, "next_step", (point.variant,), tolerance, hard_limit, True, final_margin=final_margin,
-                 inlier_ratio=True, strict_boundary=strict)
+                 inlier_ratio=True, strict_boundary=strict, worst_frame=point.worst > 0)
         for k in kappas:
-            i = g.points.index(OperatingPoint(point.variant, point.n_t, point.guard, k, point.min_ratio))
+            i = g.points.index(OperatingPoint(point.variant, point.n_t, point.guard, k, point.min_ratio, point.worst))
             s, a = g.stops[i], g.actual
             passed = np.flatnonzero(s > a + INCURSION_EPS)
             rows.append({"judge": "strict" if strict else "default", "kappa": k, "incursions": len(passed),

@@ -211,7 +211,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     variants = tuple(v for v in args.variants.split(",") if v) if args.variants else None
     out = args.out or f"out/tune-{args.stage}-{args.tolerance}"
     report = tune(cfg, args.bench_dir, args.stage, args.tolerance, out, cache=args.cache, variants=variants,
-                  error_aware=args.error_aware, inlier_ratio=args.inlier_ratio,
+                  error_aware=args.error_aware, inlier_ratio=args.inlier_ratio, worst_frame=args.worst_frame,
                   strict_boundary=args.strict_boundary, jobs=args.jobs or 2)
     print(format_report(report))
     return 0
@@ -446,6 +446,9 @@ def build_parser() -> argparse.ArgumentParser:
     tu.add_argument("--error-aware", action="store_true", help="also tune the error-aware boundary's kappa")
     tu.add_argument("--inlier-ratio", action="store_true",
                     help="also tune the inlier-ratio gate's limit (min_inlier_ratio: 0.28, 0.24, 0.2 or off)")
+    tu.add_argument("--worst-frame", action="store_true",
+                    help="also tune the guard's worst-frame limit (worst_frame_limit_*: 0.625 or 0.75 x the "
+                         "tolerance, or off): a position stops the arc when any one frame drifts past it")
     tu.add_argument("--strict-boundary", action="store_true",
                     help="judge stops against boundaries whose crossing toward a position that did not localize "
                          "lies at the last position within tolerance (the earliest it can be), not at the lost "

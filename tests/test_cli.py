@@ -595,10 +595,11 @@ def test_tune_cross_validates_over_scenes_and_writes_a_loadable_stage(dataset: P
     assert "in 2 recordings" in (out2 / "explore.yaml").read_text()
     assert main(["tune", str(bench), str(again), "--stage", "explore", "--tolerance", "4mm_10deg", "-o", str(out2),
                  "--cache", str(out / "cache"), "--cache", str(out2 / "again-cache"), "--jobs", "1",
-                 "--strict-boundary"]) == 0
+                 "--strict-boundary", "--worst-frame"]) == 0
     assert "strict boundary" in capsys.readouterr().out
     strict = json.loads((out2 / "tune.json").read_text())
     assert strict["strict_boundary"] is True and isinstance(strict["cross_validated_incursions_default_judge"], int)
+    assert strict["worst_frame"] is True and report["worst_frame"] is False
     assert main(["tune", str(bench), str(again), "--stage", "explore", "--tolerance", "4mm_10deg", "-o", str(out2),
                  "--cache", str(out / "cache"), "--jobs", "1"]) == 2  # one cache for two suites: refused
     assert main(["tune", str(bench), str(bench), "--stage", "explore", "--tolerance", "4mm_10deg", "-o", str(out2),

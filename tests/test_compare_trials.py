@@ -15,13 +15,13 @@ def _load():
     return mod
 
 
-def _trial(run, name, halt, boundary, reason, trips=(), faults=()):
+def _trial(run, name, halt, boundary, reason, trips=(), faults=(), n_t=11):
     d = run / name
     d.mkdir(parents=True)
     (d / "summary.json").write_text(json.dumps({
         "halt_angle_deg": halt, "actual_boundary_judged_deg": boundary, "incursion": halt > boundary,
         "envelope_usage": halt / boundary, "halt_reason": reason, "max_overshoot_deg": -1e-6,
-        "revision_shortfall_deg": 0.0, "sampling": "stop_and_go", "faults": list(faults)}))
+        "revision_shortfall_deg": 0.0, "sampling": "stop_and_go", "faults": list(faults), "n_t": n_t}))
     events = [{"kind": "start"}] + [{"kind": "consistency_guard", "on": on, "s_deg": s} for on, s in trips]
     (d / "events.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
 
@@ -47,15 +47,27 @@ def test_counts_each_run_and_names_the_arcs_a_guard_trip_moved(tmp_path, capsys)
     assert json.loads((tmp_path / "rep.json").read_text())["b"]["incursions"] == []
 
 
-def test_an_arc_that_differs_without_a_guard_trip_marks_the_runs_not_comparable(tmp_path, capsys):
+def test_an_arc_that_differs_with_the_same_trips_and_settings_marks_the_runs_not_comparable(tmp_path, capsys):
     mod = _load()
     a, b = tmp_path / "a", tmp_path / "b"
     _trial(a, "x_az000", 30.0, 32.0, "boundary")
     _trial(b, "x_az000", 29.5, 32.0, "inlier_ratio")
+    # both runs tripped the mean guard at the same angle, yet halted differently: the trips do not explain it
+    _trial(a, "y_az090", 30.0, 32.0, "consistency", trips=[("mean", 30.0)])
+    _trial(b, "y_az090", 28.5, 32.0, "consistency", trips=[("mean", 30.0)])
     rep = mod.compare(mod.load_run(a), mod.load_run(b))
-    assert not rep["comparable"] and rep["differing"][0]["unexplained"]
+    assert not rep["comparable"] and [d["unexplained"] for d in rep["differing"]] == [True, True]
     mod.main([str(a), str(b)])
-    assert "DIFFERS WITHOUT A GUARD TRIP" in capsys.readouterr().out
+    assert "DIFFERS WITH THE SAME GUARD TRIPS" in capsys.readouterr().out
+
+
+def test_a_changed_threshold_explains_a_changed_halt(tmp_path):
+    mod = _load()
+    a, b = tmp_path / "a", tmp_path / "b"
+    _trial(a, "x_az000", 30.0, 32.0, "boundary", n_t=11)
+    _trial(b, "x_az000", 31.5, 32.0, "boundary", n_t=6)
+    rep = mod.compare(mod.load_run(a), mod.load_run(b))
+    assert rep["comparable"] and rep["differing"][0]["settings_differ"] == ["n_t"]
 
 
 def test_a_trial_without_a_judge_or_a_missing_run_is_refused_naming_it(tmp_path, capsys):

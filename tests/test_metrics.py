@@ -112,6 +112,27 @@ def test_the_replay_reads_each_positions_inlier_ratio_over_its_localized_frames(
     assert r.ratio_stop_at(0.01) == math.inf  # a lost position (nan) does not trip the gate; n_i speaks for it
 
 
+def test_the_replay_reads_each_positions_worst_frame_beside_its_mean():
+    import dataclasses
+
+    from supervisor.evaluation.experiments import evaluate_dataset
+
+    # one frame of three is 3 mm off at position 10, 1.5 mm off at position 8: the mean moves to about 1.07 mm
+    # and 0.57 mm, under a 2 mm guard, while the worst frame crosses 2.5 mm at position 10
+    gross = {(10, 1): 3.0, (8, 2): 1.5}
+    rows = [dataclasses.replace(r, drift_t=gross.get((r.position, r.frame - 3 * r.position), 0.1) / 1000)
+            for r in _artifacts({})]
+    rows = [dataclasses.replace(r, status="LOST") if r.position == 20 else r for r in rows]
+    r = evaluate_dataset("gross", "arc", rows)
+    assert r.worst_drift[10][0] == pytest.approx(0.003) and r.drift[10][0] == pytest.approx(0.0032 / 3)
+    assert r.worst_drift[8][0] == pytest.approx(0.0015) and r.worst_drift[0][0] == pytest.approx(0.0001)
+    assert math.isnan(r.worst_drift[20][0])  # nothing localized: nothing to read
+    # 0.625 x 4 mm = 2.5 mm: the worst frame stops at position 10; the mean never gets there
+    assert r.guard_stop_at(0.625, "4mm_10deg", worst_frame=True) == pytest.approx(math.radians(2.25 * 10))
+    assert r.guard_stop_at(0.625, "4mm_10deg") == math.inf
+    assert r.guard_stop_at(0.0, "4mm_10deg", worst_frame=True) == math.inf  # 0: off
+
+
 def test_the_replay_keeps_both_readings_of_a_boundary_at_a_lost_position():
     import dataclasses
 

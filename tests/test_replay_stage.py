@@ -32,6 +32,14 @@ def test_the_shipped_explore_point_is_read_from_the_config_and_an_off_grid_guard
     odd = dataclasses.replace(cfg, stages={**cfg.stages, "explore": dataclasses.replace(st, consistency_t=0.0033)})
     with pytest.raises(ConfigError, match="consistency_limit_mm"):
         rs.stage_point(odd, "explore", "4mm_10deg")
+    # a worst-frame limit on the grid is read as its fraction of the tolerance; one off the grid is refused
+    wf = dataclasses.replace(st, worst_frame_t=0.0025, worst_frame_r=math.radians(6.25))
+    point, _ = rs.stage_point(dataclasses.replace(cfg, stages={**cfg.stages, "explore": wf}), "explore", "4mm_10deg")
+    assert point.worst == 0.625
+    uneven = dataclasses.replace(wf, worst_frame_r=math.radians(7.5))  # 0.625 x 4 mm but 0.75 x 10 deg
+    odd = dataclasses.replace(cfg, stages={**cfg.stages, "explore": uneven})
+    with pytest.raises(ConfigError, match="worst_frame_limit_mm"):
+        rs.stage_point(odd, "explore", "4mm_10deg")
 
 
 def test_kappa_changes_which_arcs_are_passed_and_both_judges_are_reported():

@@ -110,6 +110,33 @@ def test_the_inlier_ratio_gate_can_stop_a_cliff_and_the_stage_yaml_carries_it(tm
     assert st_plain.min_inlier_ratio == 0.0 and plain["_final"].min_ratio == 0.0
 
 
+def test_the_worst_frame_limit_can_stop_single_gross_frames_and_the_stage_yaml_carries_it(tmp_path):
+    from supervisor.config import load_config
+    from supervisor.stages import load_stages
+
+    # the steep scene's single frames go 3 mm off from position 8 (18 deg, before its 22 deg) while the
+    # position's mean stays at 1 mm: the worst-frame limit at 0.625 x 4 mm stops it there, the mean guard never
+    fine = [(0.0001, 0.001)] * 21
+    gross = replace(_arc("c", 0, 22, 0.2), drift=[(0.0001, 0.001)] * 8 + [(0.001, 0.001)] * 13,
+                    worst_drift=[(0.0001, 0.001)] * 8 + [(0.003, 0.001)] * 13)
+    arcs = [replace(_arc("a", 0, 20, 0.5), drift=fine, worst_drift=fine),
+            replace(_arc("b", 0, 30, 0.5), drift=fine, worst_drift=fine), gross]
+    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    worst = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
+                           worst_frame=True)
+    assert worst["worst_frame"] is True and worst["in_sample"]["incursions"] == 0
+    assert worst["_final"].worst == 0.625 and worst["_final"].n_t < plain["_final"].n_t
+    assert worst["in_sample"]["mean_spl_deg"] > plain["in_sample"]["mean_spl_deg"]
+    assert "worst frame 0.625 x tol" in worst["chosen_on_all_scenes"] and plain["_final"].worst == 0.0
+    cfg = load_config(None)
+    st = load_stages(_written(tmp_path, stage_yaml(cfg, "explore", worst["_final"], "4mm_10deg",
+                                                   {**worst, "stage": "explore"})))["explore"]
+    assert st.worst_frame_t == pytest.approx(0.0025) and st.worst_frame_r == pytest.approx(math.radians(6.25))
+    st_plain = load_stages(_written(tmp_path, stage_yaml(cfg, "explore", plain["_final"], "4mm_10deg",
+                                                         {**plain, "stage": "explore"})))["explore"]
+    assert st_plain.worst_frame_t == 0.0 and st_plain.worst_frame_r == 0.0
+
+
 def test_the_strict_boundary_judges_a_cliff_at_its_last_good_position_and_asks_for_more_caution(tmp_path):
     from supervisor.config import load_config
 

@@ -107,6 +107,9 @@ class DatasetResult:
     # per tolerance, SI: the boundary with a lost position's crossing at the position before it (metrics.
     # actual_boundary lost="last_good"), the earliest the error can have crossed; `actual` takes the latest
     actual_last_good: dict[str, float] = field(default_factory=dict)
+    # per position: the worst localized frame's guard drift (m, rad; each the largest over the frames; nan
+    # where none localized), what the loop's worst-frame limit reads after a step
+    worst_drift: list[tuple[float, float]] = field(default_factory=list)
 
     def to_allowance_stops(self, system: str, margin: float) -> list[float]:
         """`system`'s stop per n_t when the arm runs up to the allowance theta_p - margin (stop-and-go's
@@ -139,12 +142,13 @@ class DatasetResult:
                 return float(x)
         return self.x_max
 
-    def guard_stop_at(self, fraction: float, tol: str) -> float:
-        """Where the consistency guard at `fraction` of the tolerance stops (inf: never; 0 = off)."""
+    def guard_stop_at(self, fraction: float, tol: str, worst_frame: bool = False) -> float:
+        """Where the consistency guard at `fraction` of the tolerance stops (inf: never; 0 = off): on the
+        position's mean drift, or with `worst_frame` on its worst frame's (the stage's worst_frame_limit_*)."""
         if fraction <= 0:
             return math.inf
         tt, tr = TOLERANCES[tol]
-        for x, (dt, dr) in zip(self.positions, self.drift):
+        for x, (dt, dr) in zip(self.positions, self.worst_drift if worst_frame else self.drift):
             if dt > fraction * tt or dr > fraction * tr:
                 return float(x)
         return math.inf
@@ -173,12 +177,13 @@ def _localized_means(rows, value) -> list[float]:
 def _per_position(rows, kind: str):
     """Per sampling position: mean coordinate, samples (x, n_i), mean errors against ground truth,
     mean consistency drift (t, r) over the localized frames (nan where none localized), and the
-    per-position pose uncertainty (errorbound.position_log_sd of sd_t and sd_r)."""
+    per-position pose uncertainty (errorbound.position_log_sd of sd_t and sd_r), and the worst frame's
+    drift (t, r; each the largest over the localized frames)."""
     var = "theta" if kind == "arc" else "x"
     groups: dict[int, list] = {}
     for r in rows:
         groups.setdefault(r.position, []).append(r)
-    xs, xsamp, nsamp, te, re, dt, dr, lt, lr = [], [], [], [], [], [], [], [], []
+    xs, xsamp, nsamp, te, re, dt, dr, lt, lr, wt, wr = [], [], [], [], [], [], [], [], [], [], []
     for _, rs in sorted(groups.items()):
         xs.append(float(np.mean([getattr(r, var) for r in rs])))
         xsamp.append(np.array([getattr(r, var) for r in rs], float))
@@ -188,10 +193,12 @@ def _per_position(rows, kind: str):
         ok = [r for r in rs if r.status == "OK" and math.isfinite(r.drift_t)]
         dt.append(float(np.mean([r.drift_t for r in ok])) if ok else math.nan)
         dr.append(float(np.mean([r.drift_r for r in ok])) if ok else math.nan)
+        wt.append(max((r.drift_t for r in ok), default=math.nan))
+        wr.append(max((r.drift_r for r in ok), default=math.nan))
         lt.append(position_log_sd([r.sd_t if r.status == "OK" else math.nan for r in rs]))
         lr.append(position_log_sd([r.sd_r if r.status == "OK" else math.nan for r in rs]))
     return (np.array(xs), xsamp, nsamp, np.array(te), np.array(re), np.array(dt), np.array(dr),
-            np.array(lt), np.array(lr))
+            np.array(lt), np.array(lr), list(zip(wt, wr)))
 
 
 def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = GUARD_FRACTION,
@@ -203,7 +210,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
     tolerance under test (translation or rotation) means no further motion; 0 turns it off.
     """
     axis = ANGLE if kind == "arc" else TRANSLATION
-    x, xsamp, nsamp, te, re, dt, dr, lt, lr = _per_position(rows, kind)
+    x, xsamp, nsamp, te, re, dt, dr, lt, lr, worst = _per_position(rows, kind)
     if len(x) < 2:
         raise DatasetError(Path(name), f"{len(x)} sampling positions; evaluation needs at least 2")
     x_max = float(x[-1])
@@ -292,7 +299,7 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
                          scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean, theta_p_path,
-                         k_lr - 1, step_si, inlier_ratio, actual_last_good)
+                         k_lr - 1, step_si, inlier_ratio, actual_last_good, worst)
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:

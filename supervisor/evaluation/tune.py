@@ -53,6 +53,8 @@ from supervisor.prediction.models import VARIANTS
 
 GUARD_FRACTIONS = (0.25, 0.5, 0.75, 1.0, 0.0)  # of the tolerance; 0 = guard off (conservative first)
 INLIER_RATIOS = (0.28, 0.24, 0.2, 0.0)  # the inlier-ratio gate's candidates (conservative first; 0 = off)
+# the guard's worst-frame limit's candidates, of the tolerance (conservative first; 0 = off)
+WORST_FRACTIONS = (0.625, 0.75, 0.0)
 SLACKS = tuple(math.radians(d) for d in (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0))  # robust choice: required margin
 
 
@@ -63,12 +65,14 @@ class OperatingPoint:
     guard: float  # fraction of the tolerance (0 = off)
     kappa: float | None  # error-aware boundary (None = off)
     min_ratio: float = 0.0  # the inlier-ratio gate (0 = off)
+    worst: float = 0.0  # the guard's worst-frame limit, fraction of the tolerance (0 = off)
 
     def describe(self) -> str:
         g = "off" if self.guard == 0 else f"{self.guard:g} x tol"
         k = "" if self.kappa is None else f", kappa {self.kappa:g}"
         q = f", inlier ratio >= {self.min_ratio:g}" if self.min_ratio > 0 else ""
-        return f"{self.variant}, n_t {self.n_t}, guard {g}{k}{q}"
+        w = f", worst frame {self.worst:g} x tol" if self.worst > 0 else ""
+        return f"{self.variant}, n_t {self.n_t}, guard {g}{k}{q}{w}"
 
 
 class Grid:
@@ -76,7 +80,7 @@ class Grid:
 
     def __init__(self, arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tol: str,
                  hard_limit: float, error_aware: bool, final_margin: float | None = None,
-                 inlier_ratio: bool = False, strict_boundary: bool = False) -> None:
+                 inlier_ratio: bool = False, strict_boundary: bool = False, worst_frame: bool = False) -> None:
         self.arcs = arcs
         # strict: a lost position's crossing at the position before it (DatasetResult.actual_last_good)
         self.actual = np.array([r.actual_last_good[tol] if strict_boundary else r.actual[tol] for r in arcs])
@@ -87,6 +91,8 @@ class Grid:
         err = {k: np.array([r.error_stop(tol, k) if k is not None else math.inf for r in arcs]) for k in kappas}
         ratios = INLIER_RATIOS if inlier_ratio else (0.0,)
         gate = {q: np.array([r.ratio_stop_at(q) for r in arcs]) for q in ratios}
+        worsts = WORST_FRACTIONS if worst_frame else (0.0,)
+        worst = {w: np.array([r.guard_stop_at(w, tol, worst_frame=True) for r in arcs]) for w in worsts}
         for v in variants:
             system = predictor if v == "paper" else f"{predictor}_{v}"
             # (n_t, arcs); with final_margin, the run goes up to the allowance theta_p - margin instead of in
@@ -98,8 +104,10 @@ class Grid:
                 for g in GUARD_FRACTIONS:
                     for k in kappas:
                         for q in ratios:
-                            points.append(OperatingPoint(v, N_T[i], g, k, q))
-                            rows.append(np.minimum(np.minimum(np.minimum(base[i], guard[g]), err[k]), gate[q]))
+                            stop = np.minimum(np.minimum(np.minimum(base[i], guard[g]), err[k]), gate[q])
+                            for w in worsts:
+                                points.append(OperatingPoint(v, N_T[i], g, k, q, w))
+                                rows.append(np.minimum(stop, worst[w]))
         self.points = points
         self.stops = np.minimum(np.array(rows), hard_limit)
 
@@ -175,7 +183,8 @@ def load_recordings(cfg: Config, bench_dirs: Sequence[str | Path], caches: Seque
 
 def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, tolerance: str, out: str | Path, *,
          cache: str | Path | Sequence[str | Path] | None = None, variants: tuple[str, ...] | None = None,
-         error_aware: bool = False, inlier_ratio: bool = False, strict_boundary: bool = False, jobs: int = 2,
+         error_aware: bool = False, inlier_ratio: bool = False, strict_boundary: bool = False,
+         worst_frame: bool = False, jobs: int = 2,
          progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict[str, Any]:
     """Leave-one-scene-out tuning of `stage` for `tolerance` on one suite or several recordings of the same
     scenes (`bench_dir` a list, `cache` one per suite or None); writes OUT/tune.json and OUT/<stage>.yaml."""
@@ -199,7 +208,7 @@ def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, 
     final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
     report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress,
                             final_margin=final_margin, inlier_ratio=inlier_ratio,
-                            strict_boundary=strict_boundary)
+                            strict_boundary=strict_boundary, worst_frame=worst_frame)
     report["stage"] = stage
     report["suites"] = [str(b) for b in benches]
     final = report.pop("_final")
@@ -215,7 +224,8 @@ def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, 
 def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tolerance: str,
                    hard_limit: float, error_aware: bool = False, progress=lambda m: None,
                    robust: bool = True, final_margin: float | None = None,
-                   inlier_ratio: bool = False, strict_boundary: bool = False) -> dict[str, Any]:
+                   inlier_ratio: bool = False, strict_boundary: bool = False,
+                   worst_frame: bool = False) -> dict[str, Any]:
     """Leave-one-scene-out over `arcs` (evaluated datasets): per fold the choice and its held-out stops,
     the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs.
 
@@ -226,12 +236,14 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     choose the inlier-ratio gate's limit (INLIER_RATIOS). `strict_boundary`: judge every stop against the
     boundary whose crossing toward a position that did not localize lies at the position before it (the
     earliest it can be; a live judge that samples inside such a step finds cliffs early in it), not at the
-    lost position itself; the report then also counts the held-out stops' incursions by the default judge."""
+    lost position itself; the report then also counts the held-out stops' incursions by the default judge.
+    `worst_frame`: also choose the guard's worst-frame limit (WORST_FRACTIONS of the tolerance), which stops
+    at a position where any single frame drifts past it, however good the position's mean."""
     scenes = sorted({r.scene or r.name for r in arcs})
     if len(scenes) < 2:
         raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
     grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware, final_margin, inlier_ratio,
-                strict_boundary)
+                strict_boundary, worst_frame)
     scene_of = np.array([r.scene or r.name for r in arcs])
     deg = math.degrees(1.0)
     folds, held_stops, static_stops = [], np.full(len(arcs), np.nan), np.full(len(arcs), np.nan)
@@ -262,7 +274,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     final, final_slack = grid.choose_robust(every, scene_of) if robust else (grid.choose(every), 0.0)
     return {
         "tolerance": tolerance, "predictor": predictor, "variants": list(variants), "error_aware": error_aware,
-        "inlier_ratio": inlier_ratio, "strict_boundary": strict_boundary,
+        "inlier_ratio": inlier_ratio, "strict_boundary": strict_boundary, "worst_frame": worst_frame,
         "final_step_margin_deg": None if final_margin is None else final_margin * deg,
         "arcs": len(arcs), "scenes": scenes, "folds": folds,
         "cross_validated": cv, "cross_validated_static": cv_static,
@@ -295,6 +307,11 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
     node.pop("min_inlier_ratio", None)
     if op.min_ratio > 0:
         node["min_inlier_ratio"] = op.min_ratio  # the inlier-ratio gate
+    node.pop("worst_frame_limit_mm", None)
+    node.pop("worst_frame_limit_deg", None)
+    if op.worst > 0:  # the guard's worst-frame limit
+        node["worst_frame_limit_mm"] = round(op.worst * tt * 1000.0, 3)
+        node["worst_frame_limit_deg"] = round(op.worst * math.degrees(tr), 3)
     doc: dict[str, Any] = {"stages": {stage: node}}
     cv = report["cross_validated"]
     head = (f"# stage {stage} tuned for {tolerance} by leave-one-scene-out cross-validation over "
