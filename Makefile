@@ -6,6 +6,9 @@ STAMP  := $(VENV)/.installed
 # + the aravis extra and the Debian packages the tests need (make test installs them)
 ARAVIS_STAMP := $(VENV)/.aravis-installed
 OUT    ?= out
+# test workers (pytest-xdist), one test file at a time each: the real-time tests mostly wait on the clock, so two
+# workers on a 2-core machine take ~0.6x the serial time; TEST_WORKERS=0 runs serially in this process
+TEST_WORKERS ?= 2
 
 .PHONY: setup run test bench clean aravis-deps
 
@@ -22,7 +25,7 @@ run: $(STAMP)
 	$(VENV)/bin/supervisor dry-run -o $(OUT)/dry-run
 
 test: $(ARAVIS_STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # Aravis camera driver (the `aravis` extra): Debian's build deps for PyGObject and the GigE fake camera
 # (aravis-tools), then the pip wheels. Needs root for apt-get; idempotent (dpkg check, stamp file).
