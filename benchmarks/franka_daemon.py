@@ -20,22 +20,28 @@ import tempfile
 import time
 from pathlib import Path
 
+import yaml
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from daemon_vs_dryrun import Daemon as SimDaemon  # noqa: E402 - the same daemon subprocess, beside this file
 from sim.fci_server import FciServer  # noqa: E402
+from supervisor.config import load_config  # noqa: E402
 
 
 def config(tmp: Path, host: str, fps: int, timeout_scale: float) -> Path:
-    text = (ROOT / "config" / "franka-sim.yaml").read_text()
-    text = text.replace("host: 127.0.0.10", f"host: {host}", 1).replace("frame_rate_hz: 30", f"frame_rate_hz: {fps}", 1)
+    """config/franka-sim.yaml extended: the robot at `host`, the camera at `fps`, every timeout scaled."""
+    doc = {"extends": str(ROOT / "config" / "franka-sim.yaml"), "robot": {"host": host},
+           "camera": {"frame_rate_hz": fps}}
     if timeout_scale != 1:
-        text = text.replace("  timeout_ms: 200", f"  timeout_ms: {200 * timeout_scale:.0f}", 1)
-        text = text.replace("frame_timeout_ms: 200", f"frame_timeout_ms: {200 * timeout_scale:.0f}")
-        text = text.replace("localization_timeout_ms: 1000", f"localization_timeout_ms: {1000 * timeout_scale:.0f}")
+        shipped = load_config(ROOT / "config" / "franka-sim.yaml")
+        doc["camera"]["timeout_ms"] = round(shipped.camera.timeout_s * 1000 * timeout_scale)
+        doc["stages"] = {name: {"frame_timeout_ms": round(st.frame_timeout * 1000 * timeout_scale),
+                                "localization_timeout_ms": round(st.localization_timeout * 1000 * timeout_scale)}
+                         for name, st in shipped.stages.items()}
     path = tmp / "franka-sim.yaml"
-    path.write_text(text)
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 
 

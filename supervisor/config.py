@@ -111,11 +111,19 @@ class Config:
         return self.stages[name]
 
 
+MAX_EXTENDS_DEPTH = 8  # a chain of `extends:` longer than this is refused (a cycle is named as one)
+
+
 def load_config(path: str | Path | None = None) -> Config:
-    """Load and validate a configuration file (default: the embedded config/default.yaml)."""
+    """Load and validate a configuration file (default: the embedded config/default.yaml).
+
+    A file may start from another with `extends: default` (the embedded configuration) or `extends: FILE`
+    (relative to the extending file's folder): the base is loaded and validated on its own first, so an
+    error in it names the base file, then the extending file's keys are laid over it (mappings merge key
+    by key, anything else, lists and null included, replaces). `sha256` covers the whole chain."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    raw = read_bounded(path, what="configuration")
-    root = Node(load_yaml_text(decode_text(raw, path), path), path)
+    doc, digest = _read_chain(path, ())
+    root = Node(doc, path)
     cfg = Config(
         robot=_robot(root.child("robot"), path),
         camera=_camera(root.child("camera")),
@@ -128,7 +136,7 @@ def load_config(path: str | Path | None = None) -> Config:
         recording=_recording(root.child("recording", {})),
         faults=_faults(root),
         file=str(path),
-        sha256=hashlib.sha256(raw).hexdigest(),
+        sha256=digest,
     )
     _check_faults_on_sim(cfg, root)
     if cfg.default_stage not in cfg.stages:
@@ -136,6 +144,43 @@ def load_config(path: str | Path | None = None) -> Config:
                                           f"got {cfg.default_stage!r}")
     root.done()
     return cfg
+
+
+def _read_chain(path: Path, chain: tuple[Path, ...]) -> tuple[object, str]:
+    """The file's document with its `extends:` base merged under it, and the chain's SHA-256."""
+    raw = read_bounded(path, what="configuration")
+    doc = load_yaml_text(decode_text(raw, path), path)
+    if not (isinstance(doc, dict) and "extends" in doc):
+        return doc, hashlib.sha256(raw).hexdigest()
+    base = doc.pop("extends")
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(path, "extends", "expected 'default' (the embedded configuration) or a file name, "
+                                           f"got {base!r}")
+    base_path = DEFAULT_CONFIG if base == "default" else (path.parent / base)
+    here = path.resolve()
+    if base_path.resolve() in (*chain, here):
+        names = " -> ".join(str(p) for p in (*chain, here, base_path.resolve()))
+        raise ConfigError(path, "extends", f"the files extend each other in a cycle: {names}")
+    if len(chain) + 1 > MAX_EXTENDS_DEPTH:
+        raise ConfigError(path, "extends", f"more than {MAX_EXTENDS_DEPTH} files extend one another")
+    if not base_path.is_file():
+        raise ConfigError(path, "extends", f"no configuration file {str(base_path)!r} "
+                                           "(a relative name is taken from this file's folder)")
+    base_doc, base_digest = _read_chain(base_path, (*chain, here))  # finds a cycle before anything recurses
+    if not chain:
+        load_config(base_path)  # the base is valid on its own, so an error in it names its own file
+    merged = _overlay(base_doc, doc)
+    return merged, hashlib.sha256(raw + b"\0extends\0" + base_digest.encode()).hexdigest()
+
+
+def _overlay(base: object, top: object) -> object:
+    """`top` laid over `base`: mappings merge key by key, recursively; any other value replaces."""
+    if not (isinstance(base, dict) and isinstance(top, dict)):
+        return top
+    out = dict(base)
+    for key, value in top.items():
+        out[key] = _overlay(base[key], value) if key in base else value
+    return out
 
 
 # -- `faults:` fault injection for the simulator drivers (issue 10) ------------------------------------

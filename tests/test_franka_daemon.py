@@ -46,18 +46,19 @@ def franka_config(tmp: Path, host: str, frame_rate_hz: int) -> Path:
     (the robot-state gap stays at 20 ms: the kill is noticed by it): these tests are
     about the protocol and the gate on the reported trajectory; on a shared 2-core machine franky-sim's
     physics and the renderer starve SIFT for seconds (the timeouts' own behaviour is tested in
-    test_loop_failsafe.py and test_daemon.py)."""
-    text = (ROOT / "config" / "franka-sim.yaml").read_text()
-    for old, new, count in (("host: 127.0.0.10", f"host: {host}", 1),
-                            ("frame_rate_hz: 30", f"frame_rate_hz: {frame_rate_hz}", 1),
-                            ("  timeout_ms: 200", "  timeout_ms: 1000", 1),
-                            ("frame_timeout_ms: 200", "frame_timeout_ms: 1000", -1),
-                            ("localization_timeout_ms: 1000", "localization_timeout_ms: 5000", -1),
-                            ("    pose_gap_ms: 20", "    pose_gap_ms: 20\n    overrun_budget: 50", -1)):
-        assert old in text, old
-        text = text.replace(old, new, count)
-    doc = yaml.safe_load(text)
-    doc["stages"][GATE_STAGE] = {**doc["stages"]["explore"], **GATE_KEYS}
+    test_loop_failsafe.py and test_daemon.py). Written as users write theirs: `extends:` the shipped file,
+    with only what differs."""
+    shipped = ROOT / "config" / "franka-sim.yaml"
+    stages = yaml.safe_load((ROOT / "config" / "default.yaml").read_text())["stages"]
+    for name, stage in stages.items():
+        assert (stage["frame_timeout_ms"], stage["localization_timeout_ms"], stage["pose_gap_ms"]) == (200, 1000, 20), name
+    raised = {"frame_timeout_ms": 1000, "localization_timeout_ms": 5000, "overrun_budget": 50}
+    doc = {
+        "extends": str(shipped),
+        "robot": {"host": host},
+        "camera": {"frame_rate_hz": frame_rate_hz, "timeout_ms": 1000},
+        "stages": {**{name: raised for name in stages}, GATE_STAGE: {**stages["explore"], **raised, **GATE_KEYS}},
+    }
     path = tmp / "franka-sim.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
