@@ -164,7 +164,8 @@ def _read_chain(path: Path, chain: tuple[Path, ...]) -> tuple[object, str]:
     if len(chain) + 1 > MAX_EXTENDS_DEPTH:
         raise ConfigError(path, "extends", f"more than {MAX_EXTENDS_DEPTH} files extend one another")
     if not base_path.is_file():
-        raise ConfigError(path, "extends", f"no configuration file {str(base_path)!r} "
+        problem = "is not a regular file" if base_path.exists() else "does not exist"
+        raise ConfigError(path, "extends", f"the configuration file {str(base_path)!r} {problem} "
                                            "(a relative name is taken from this file's folder)")
     base_doc, base_digest = _read_chain(base_path, (*chain, here))  # finds a cycle before anything recurses
     if not chain:

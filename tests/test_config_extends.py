@@ -61,7 +61,8 @@ def test_the_hash_covers_the_base(tmp_path):
 @pytest.mark.parametrize("value, problem", [
     (3, "expected 'default' (the embedded configuration) or a file name, got 3"),
     ("", "or a file name, got ''"),
-    ("nowhere.yaml", "no configuration file"),
+    ("nowhere.yaml", "nowhere.yaml' does not exist (a relative name is taken from this file's folder)"),
+    (".", "is not a regular file"),
 ])
 def test_a_bad_extends_names_the_file_and_key(tmp_path, value, problem):
     f = write(tmp_path / "cell.yaml", {"extends": value})
