@@ -17,7 +17,6 @@ Default scenes: those of benchmark suite v3 (`--suite v2` for the previous suite
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import multiprocessing
@@ -33,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
 from supervisor.dryrun import ORACLE_FRAMES, ORACLE_REFINE, ORACLE_STEP, DryRunSpec  # noqa: E402
+from supervisor.processes import die_with_parent  # noqa: E402
 
 
 def _trial(args: tuple[str, float, str, str, str, str | None, bool, int, float, int, int, float | None]) -> dict:
@@ -180,7 +180,7 @@ def main() -> int:
           + ("" if a.fixed_latency_ms is None else f", fixed latency {a.fixed_latency_ms:g} ms"), file=sys.stderr)
     rows = []
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(a.jobs, mp_context=ctx) as pool:
+    with ProcessPoolExecutor(a.jobs, mp_context=ctx, initializer=die_with_parent) as pool:  # no orphans if killed
         for k, s in enumerate(pool.map(_trial, trials), 1):
             rows.append(s)
             print(f"  [{k}/{len(trials)}] {s['scene']} az {s['azimuth_deg']:g} {s['sampling']}: halt "

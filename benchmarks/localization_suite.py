@@ -27,6 +27,7 @@ from supervisor.dataset.benchmark import load_suite  # noqa: E402
 from supervisor.evaluation.cache import localized  # noqa: E402
 from supervisor.evaluation.metrics import actual_boundary  # noqa: E402
 from supervisor.localization.offline import per_position  # noqa: E402
+from supervisor.processes import die_with_parent  # noqa: E402
 
 
 def _one(args: tuple[str, str]) -> tuple[str, list]:
@@ -49,7 +50,7 @@ def main() -> int:
     cache.mkdir(parents=True, exist_ok=True)
     datasets = [str(p) for p in load_suite(a.suite)]
     rows = {}
-    with ProcessPoolExecutor(a.jobs) as pool:
+    with ProcessPoolExecutor(a.jobs, initializer=die_with_parent) as pool:  # no orphans if killed
         for k, (ds, arts) in enumerate(pool.map(_one, [(d, str(cache)) for d in datasets]), 1):
             rows[Path(ds).name] = arts
             print(f"  [{k}/{len(datasets)}] {Path(ds).name}: {len(arts)} frames", file=sys.stderr, flush=True)

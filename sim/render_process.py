@@ -30,7 +30,7 @@ RENDER_PRIORITY: int | None = None
 def _serve(scene: Scene, intrinsics: Intrinsics, shm_name: str, conn) -> None:
     import os
 
-    from supervisor.runtime.worker import die_with_parent
+    from supervisor.processes import die_with_parent
 
     die_with_parent()
     if RENDER_PRIORITY is not None:

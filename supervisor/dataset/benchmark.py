@@ -44,6 +44,7 @@ from supervisor.config import Config, load_config
 from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
 from supervisor.errors import DatasetError, SupervisorError
 from supervisor.outputs import prepare_incremental
+from supervisor.processes import die_with_parent
 
 SUITE_FILE = "suite.json"
 ARC_AZIMUTHS_DEG = (0.0, 90.0, 270.0)
@@ -131,7 +132,7 @@ def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int 
     jobs = jobs or min(2, os.cpu_count() or 1)
     t0 = time.monotonic()
     done = len(items) - len(todo)
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, initializer=die_with_parent) as pool:  # no orphans if we are killed
         futures = {pool.submit(_run_item, cfg.file, str(out / i.name), i, ipp, seed, arc_step): i for i in todo}
         failed: list[str] = []
         for fut in as_completed(futures):

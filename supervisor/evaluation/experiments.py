@@ -40,6 +40,7 @@ from supervisor.dataset.format import Dataset
 from supervisor.errors import DatasetError
 from supervisor.evaluation.cache import localized
 from supervisor.outputs import prepare_incremental
+from supervisor.processes import die_with_parent
 from supervisor.evaluation.metrics import (CurvePoint, actual_boundary, incursion_rate, max_mean_spl_zero_incursion,
                                           spl)
 from supervisor.prediction.emg import ANGLE, TRANSLATION
@@ -411,7 +412,8 @@ def evaluate_suite(cfg: Config, bench_dir: str | Path, cache: str | Path, jobs: 
     results: list[DatasetResult] = []
     args = [(str(d), str(cache), None if cfg.file is None else str(cfg.file)) for d in datasets]
     # spawn, not fork: OpenCV's thread pools do not survive a fork of a process that has used them.
-    with ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=multiprocessing.get_context("spawn"),
+                             initializer=die_with_parent) as pool:  # no orphans if we are killed
         for k, r in enumerate(pool.map(_job, args), 1):
             results.append(r)
             progress(f"  [{k}/{len(datasets)}] {r.name}: theta_a(4mm/10deg) = "

@@ -96,7 +96,7 @@ def _picklable(exc: BaseException) -> BaseException:
 def _fits_main(conn) -> None:
     """The fit process: ("predictor", run, predictor) starts a run, ("fit", run, step, xs, ns, err) asks for
     a fit, answered with (run, step, (prediction, exception)); None or a closed pipe ends it."""
-    from supervisor.runtime.worker import die_with_parent
+    from supervisor.processes import die_with_parent
 
     die_with_parent()
     try:  # ordinary policy, whatever the spawning thread had (a real-time tick's would be inherited)

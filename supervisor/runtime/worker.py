@@ -22,7 +22,6 @@ pool, frames submitted after a refinement request wait for the new model.
 from __future__ import annotations
 
 import math
-import os
 import queue
 import threading
 import time
@@ -37,6 +36,7 @@ from supervisor.localization.localizer import LocalizationResult, Localizer
 from supervisor.localization.model import TargetModel
 from supervisor.localization.refine import ModelRefiner
 from supervisor.localization.settings import LocalizerSettings
+from supervisor.processes import die_with_parent
 
 
 @dataclass(frozen=True)
@@ -287,20 +287,6 @@ class ThreadWorker:
         deadline = time.monotonic() + timeout
         for th in self._threads:
             th.join(max(0.0, deadline - time.monotonic()))
-
-
-def die_with_parent() -> None:
-    """Linux: this (child) process gets SIGKILL when its parent dies, even by SIGKILL (no orphans)."""
-    import ctypes
-    import signal as _signal
-
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(_signal.SIGKILL))  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-    if os.getppid() == 1:  # the parent died before the call took effect
-        os._exit(1)
 
 
 def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str, slot_bytes: int,
