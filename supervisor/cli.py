@@ -323,6 +323,14 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     return 0 if reply.get("ok") else EXIT_USAGE
 
 
+def cmd_config(args: argparse.Namespace) -> int:
+    from supervisor.configinfo import check_report, show_document
+
+    path = args.file or args.config
+    print(check_report(path) if args.sub == "check" else show_document(path), end="\n" if args.sub == "check" else "")
+    return 0
+
+
 def cmd_can_monitor(args: argparse.Namespace) -> int:
     """Consume the supervisor's heartbeat; 0 when it never tripped, 1 when it did (2: bad input)."""
     from supervisor.can.codec import Codec
@@ -388,6 +396,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="supervisor", description=__doc__.splitlines()[0])
     p.add_argument("--config", default=None, help="configuration YAML (default: embedded config/default.yaml)")
     sub = p.add_subparsers(dest="command", required=True)
+
+    cf = sub.add_parser("config", help="check a configuration file, or show it with what it extends merged in")
+    cfs = cf.add_subparsers(dest="sub", required=True)
+    for name, text in (("check", "validate FILE (default: --config or the embedded one) and every file it extends; "
+                                 "print its stages, robot, camera and SHA-256"),
+                       ("show", "print the effective configuration (the extends: chain merged) as YAML")):
+        c = cfs.add_parser(name, help=text)
+        c.add_argument("file", nargs="?", default=None)
+        c.set_defaults(func=cmd_config)
 
     ds = sub.add_parser("dataset", help="recorded datasets").add_subparsers(dest="sub", required=True)
     g = ds.add_parser("generate", help="record a dataset in simulation (paper protocol)")

@@ -122,7 +122,7 @@ def load_config(path: str | Path | None = None) -> Config:
     error in it names the base file, then the extending file's keys are laid over it (mappings merge key
     by key, anything else, lists and null included, replaces). `sha256` covers the whole chain."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    doc, digest = _read_chain(path, ())
+    doc, digest, _ = resolve_config(path)
     root = Node(doc, path)
     cfg = Config(
         robot=_robot(root.child("robot"), path),
@@ -146,12 +146,18 @@ def load_config(path: str | Path | None = None) -> Config:
     return cfg
 
 
-def _read_chain(path: Path, chain: tuple[Path, ...]) -> tuple[object, str]:
-    """The file's document with its `extends:` base merged under it, and the chain's SHA-256."""
+def resolve_config(path: str | Path | None = None) -> tuple[object, str, tuple[Path, ...]]:
+    """The file's document with its `extends:` chain merged in (units as written: mm, deg, ms), the chain's
+    SHA-256 and the chain's files, the given one first (the embedded default as its path). Validates
+    each base on its own, not the result: `load_config` does that."""
+    return _read_chain(Path(path) if path is not None else DEFAULT_CONFIG, ())
+
+
+def _read_chain(path: Path, chain: tuple[Path, ...]) -> tuple[object, str, tuple[Path, ...]]:
     raw = read_bounded(path, what="configuration")
     doc = load_yaml_text(decode_text(raw, path), path)
     if not (isinstance(doc, dict) and "extends" in doc):
-        return doc, hashlib.sha256(raw).hexdigest()
+        return doc, hashlib.sha256(raw).hexdigest(), (path,)
     base = doc.pop("extends")
     if not isinstance(base, str) or not base.strip():
         raise ConfigError(path, "extends", "expected 'default' (the embedded configuration) or a file name, "
@@ -167,11 +173,11 @@ def _read_chain(path: Path, chain: tuple[Path, ...]) -> tuple[object, str]:
         problem = "is not a regular file" if base_path.exists() else "does not exist"
         raise ConfigError(path, "extends", f"the configuration file {str(base_path)!r} {problem} "
                                            "(a relative name is taken from this file's folder)")
-    base_doc, base_digest = _read_chain(base_path, (*chain, here))  # finds a cycle before anything recurses
+    base_doc, base_digest, files = _read_chain(base_path, (*chain, here))  # finds a cycle before recursing
     if not chain:
         load_config(base_path)  # the base is valid on its own, so an error in it names its own file
     merged = _overlay(base_doc, doc)
-    return merged, hashlib.sha256(raw + b"\0extends\0" + base_digest.encode()).hexdigest()
+    return merged, hashlib.sha256(raw + b"\0extends\0" + base_digest.encode()).hexdigest(), (path, *files)
 
 
 def _overlay(base: object, top: object) -> object:

@@ -107,3 +107,32 @@ def test_an_error_in_the_overlay_names_the_overlay(tmp_path):
     with pytest.raises(ConfigError) as info:  # a new stage is a whole stage: nothing to merge it into
         load_config(top)
     assert info.value.file == str(top) and info.value.key.startswith("stages.mine")
+
+
+def test_config_check_prints_the_chain_and_the_stages(tmp_path, capsys):
+    from supervisor.cli import main
+
+    site = write(tmp_path / "site.yaml", {"extends": "default", "stages": {"cut": {"n_t": 12}}})
+    cell = write(tmp_path / "cell.yaml", {"extends": "site.yaml", "robot": {"driver": "franka", "host": "10.0.0.2"}})
+    assert main(["config", "check", str(cell)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"ok: {cell}\n  extends: {site} -> default (")
+    assert f"sha256: {load_config(cell).sha256}" in out and "robot: franka (panda) at 10.0.0.2, 250 Hz" in out
+    assert "    cut                  next_step local_lcb, n_t 12, stop_and_go 1 deg steps" in out
+    assert "tuned for 2 mm / 3 deg" in out
+    write(site, {"extends": "default", "stages": {"cut": {"n_t": 2}}})
+    assert main(["config", "check", str(cell)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: {site}: stages.cut.n_t: must be >= 4, got 2"
+
+
+def test_config_show_is_the_merged_document_and_loads_the_same(tmp_path, capsys):
+    from supervisor.cli import main
+
+    cell = write(tmp_path / "cell.yaml", {"extends": "default", "stages": {"explore": {"n_t": 9}}})
+    assert main(["config", "show", str(cell)]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"# effective configuration of {cell}\n# extends default (")
+    assert "extends" not in yaml.safe_load(text)
+    flat = load_config(write(tmp_path / "flat.yaml", text))
+    assert flat.stages == load_config(cell).stages and flat.stages["explore"].n_t == 9
+    assert main(["--config", str(cell), "config", "show"]) == 0 and capsys.readouterr().out == text
