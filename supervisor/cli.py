@@ -326,8 +326,8 @@ def cmd_ctl(args: argparse.Namespace) -> int:
 def cmd_config(args: argparse.Namespace) -> int:
     from supervisor.configinfo import check_report, show_document
 
-    path = args.file or args.config
-    print(check_report(path) if args.sub == "check" else show_document(path), end="\n" if args.sub == "check" else "")
+    report = check_report if args.sub == "check" else show_document
+    print(report(args.file or args.config).rstrip("\n"))
     return 0
 
 
