@@ -31,12 +31,13 @@ ROOT = Path(__file__).resolve().parents[1]
 FRAME_RATE_HZ = 10
 TRACKING_DEG = 0.01  # how far the reported arm may pass a commanded stop (its tracking error), deg of arc
 GATE_HALTS = ("boundary", "hard_limit", "consistency", "no_model", "end_of_path")
-# explore with a 100 ms robot-state gap, for the gated-arc test: with the shipped 20 ms, franky-sim's state
-# stream on a loaded 2-core CI machine paused 23-24 ms in three attempts in a row (a correct latched
-# state_gap halt, but not the gate this test is about). The kill test keeps the shipped 20 ms.
+# explore with a 250 ms robot-state gap, for the gated-arc test: with the shipped 20 ms, franky-sim's state
+# stream on a loaded 2-core CI machine paused 23-24 ms in three attempts in a row, and once with 100 ms beside a
+# dry-run trial it paused longer still (a correct latched state_gap halt, but not the gate this test is about).
+# The kill test keeps the shipped 20 ms.
 # 3 deg steps of 3 frames: the gate is the same rule; explore's 1.5 deg steps of 5 frames took 60 s of the suite.
-GATE_STAGE = "explore_gap100"
-GATE_KEYS = {"pose_gap_ms": 100, "step_deg": 3.0, "frames_per_step": 3}
+GATE_STAGE = "explore_gap250"
+GATE_KEYS = {"pose_gap_ms": 250, "step_deg": 3.0, "frames_per_step": 3}
 
 
 def franka_config(tmp: Path, host: str, frame_rate_hz: int) -> Path:
