@@ -33,7 +33,7 @@ from supervisor.evaluation.tune import (GUARD_FRACTIONS, INLIER_RATIOS, WORST_FR
 from supervisor.prediction.errorbound import KAPPAS
 
 
-def stage_point(cfg, stage: str, tolerance: str) -> tuple[OperatingPoint, float | None]:
+def stage_point(cfg, stage: str, tolerance: str) -> tuple[OperatingPoint, float | None, float]:
     """The stage's operating point on the tuning grid, and the margin its run goes up to the allowance with
     (None: whole steps). A stage off the grid is refused naming the key."""
     st = cfg.stage(stage)
@@ -55,15 +55,17 @@ def stage_point(cfg, stage: str, tolerance: str) -> tuple[OperatingPoint, float 
         raise ConfigError(where, f"stages.{stage}.worst_frame_limit_mm",
                           f"the worst-frame limit must be one of {WORST_FRACTIONS} x the tolerance in both quantities")
     final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
-    return OperatingPoint(st.variant, st.n_t, guard, st.error_kappa, st.min_inlier_ratio, worst), final_margin
+    point = OperatingPoint(st.variant, st.n_t, guard, st.error_kappa, st.min_inlier_ratio, worst)
+    return point, final_margin, st.final_step_clearance
 
 
 def replay(arcs, point: OperatingPoint, final_margin: float | None, hard_limit: float, tolerance: str,
-           kappas: list[float | None]) -> list[dict]:
+           kappas: list[float | None], final_clearance: float = 0.0) -> list[dict]:
     rows = []
     for strict in (False, True):
         g = Grid(arcs, "next_step", (point.variant,), tolerance, hard_limit, True, final_margin=final_margin,
-                 inlier_ratio=True, strict_boundary=strict, worst_frame=point.worst > 0)
+                 inlier_ratio=True, strict_boundary=strict, worst_frame=point.worst > 0,
+                 final_clearance=final_clearance)
         for k in kappas:
             i = g.points.index(OperatingPoint(point.variant, point.n_t, point.guard, k, point.min_ratio, point.worst))
             s, a = g.stops[i], g.actual
@@ -89,7 +91,7 @@ def main() -> int:
     a = ap.parse_args()
     try:
         cfg = load_config(a.config)
-        point, final_margin = stage_point(cfg, a.stage, a.tolerance)
+        point, final_margin, clearance = stage_point(cfg, a.stage, a.tolerance)
         kappas: list[float | None] = [point.kappa]
         if a.kappas:
             kappas = [None if v.strip() == "off" else float(v) for v in a.kappas.split(",")]
@@ -105,7 +107,7 @@ def main() -> int:
     except ValueError as exc:
         ap.error(str(exc))
     st = cfg.stage(a.stage)
-    rows = replay(arcs, point, final_margin, st.hard_limit, a.tolerance, kappas)
+    rows = replay(arcs, point, final_margin, st.hard_limit, a.tolerance, kappas, clearance)
     print(f"{a.stage}: {point.describe()}, "
           + ("whole steps" if final_margin is None else f"up to the allowance, margin {math.degrees(final_margin):g} deg")
           + f"; {len(arcs)} arcs at {a.tolerance}")

@@ -47,7 +47,9 @@ def describe(cfg: Config, files: tuple[Path, ...]) -> str:
                f"tuned for {1000 * st.tolerance_t:g} mm / {math.degrees(st.tolerance_r):g} deg")
         lines.append(f"    {st.name:<20} {st.predictor} {st.variant}, n_t {st.n_t}, {st.sampling} "
                      f"{math.degrees(st.step):g} deg steps, margin {math.degrees(st.margin):g} deg, "
-                     f"hard limit {math.degrees(st.hard_limit):g} deg, {tol}")
+                     + (f"last step {math.degrees(st.final_step_clearance):g} deg short of the allowance, "
+                        if st.final_step_clearance > 0 else "")
+                     + f"hard limit {math.degrees(st.hard_limit):g} deg, {tol}")
     return "\n".join(lines)
 
 

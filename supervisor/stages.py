@@ -15,6 +15,8 @@ A `stages:` mapping in the configuration YAML (degrees/ms at this edge, SI in
         final_step: whole            # stop-and-go, when a whole step is refused: whole = halt where the
                                      # arm is (the paper's rule); to_allowance = one last, shorter step up
                                      # to theta_allowed, then halt
+        final_step_clearance_deg: 0  # to_allowance only: the last step stops this far short of theta_allowed
+                                     # (it is taken on a prediction alone, never observed before the halt)
         frames_per_step: 5
         warmup_steps: 4              # steps allowed before a valid model must exist
         frame_timeout_ms: 200
@@ -84,6 +86,7 @@ class StageConfig:
     tolerance_r: float | None = None  # rad, the rotation tolerance
     error_kappa: float | None = None  # the error-aware boundary's kappa (None: off); needs both tolerances
     final_step: str = "whole"  # stop-and-go: "whole" steps only, or a last step "to_allowance" (see the loop)
+    final_step_clearance: float = 0.0  # rad: the last, shorter step ends this far short of theta_allowed
 
     def theta_allowed(self, theta_p: float | None) -> float:
         """The one rule for the angle the gate must not pass: `min(theta_p - margin, hard_limit)`.
@@ -134,11 +137,15 @@ def parse_stage(name: str, n: Node) -> StageConfig:
         min_inlier_ratio=n.number("min_inlier_ratio", 0.0, min=0.0, max=0.99),
         overrun_budget=n.integer("overrun_budget", 3, min=1, max=1000),
         final_step=n.string("final_step", "whole", choices=FINAL_STEPS),
+        final_step_clearance=math.radians(n.number("final_step_clearance_deg", 0.0, min=0.0, max=30.0)),
         **_error_bound(n),
     )
     if stage.final_step != "whole" and stage.sampling != "stop_and_go":
         raise n.error("final_step", f"{stage.final_step!r} applies to stop_and_go sampling only (continuous "
                       "sampling always runs up to theta_allowed); remove it or use 'whole'")
+    if stage.final_step_clearance > 0.0 and stage.final_step != "to_allowance":
+        raise n.error("final_step_clearance_deg", "applies to the last, shorter step of final_step: to_allowance "
+                      f"only (this stage has final_step: {stage.final_step}); remove it or set final_step")
     n.done()
     return stage
 

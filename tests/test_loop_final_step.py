@@ -13,8 +13,8 @@ from loop_fakes import DEG, build_loop, stage
 from supervisor.runtime.loop import FINAL_STEP_MIN, executed_angles, overshoot
 
 
-def _run(final_step: str):
-    st = stage(sampling="stop_and_go", hard_limit=30 * DEG, warmup_steps=4, final_step=final_step)
+def _run(final_step: str, **extra):
+    st = stage(sampling="stop_and_go", hard_limit=30 * DEG, warmup_steps=4, final_step=final_step, **extra)
     rig = build_loop(st)
     rec = rig.loop.run()
     executed = executed_angles(rec, rig.kin, rig.T0)
@@ -53,3 +53,19 @@ def test_to_allowance_takes_one_shorter_last_step_up_to_the_allowance_and_no_fur
     # after the guard tripped there is no last step (the allowance is then a stop point, not a boundary)
     rig.loop._guard_stop = rig.loop.follower.state.s
     assert not rig.loop._may_step_to_allowance(rig.loop.follower.state.s - 1.0 * DEG)
+
+
+def test_a_final_step_clearance_ends_the_last_step_that_far_short_of_the_allowance():
+    plain, plain_steps, plain_pred, *_ = _run("to_allowance")
+    whole_halt = plain_steps[-2]["target_deg"]  # where the last whole step ended
+    room = plain_pred["theta_allowed_deg"] - whole_halt
+    assert room > 0.25  # (the fake's boundary leaves room for a last step longer than 0.1 deg + FINAL_STEP_MIN)
+    rec, steps, last_pred, over, rig = _run("to_allowance", final_step_clearance=0.1 * DEG)
+    assert [e["target_deg"] for e in steps[:-1]] == [e["target_deg"] for e in plain_steps[:-1]]
+    assert steps[-1].get("final") and last_pred["theta_allowed_deg"] == pytest.approx(plain_pred["theta_allowed_deg"])
+    assert math.degrees(rec.halt_s) == pytest.approx(last_pred["theta_allowed_deg"] - 0.1, abs=1e-6)
+    assert rec.halt_reason == "boundary" and over <= 1e-9 and len(rec.samples) == len(plain.samples)
+    # a margin that leaves less than FINAL_STEP_MIN of the room: no last step, the arm halts where it is
+    rec, steps, *_ = _run("to_allowance", final_step_clearance=(room * DEG - FINAL_STEP_MIN) + 0.01 * DEG)
+    assert not any(e.get("final") for e in steps)
+    assert math.degrees(rec.halt_s) == pytest.approx(whole_halt, abs=1e-6) and rec.halt_reason == "boundary"

@@ -25,16 +25,16 @@ def _load():
 def test_the_shipped_explore_point_is_read_from_the_config_and_an_off_grid_guard_is_refused():
     rs = _load()
     cfg = load_config(None)
-    point, margin = rs.stage_point(cfg, "explore", "4mm_10deg")
+    point, margin, clearance = rs.stage_point(cfg, "explore", "4mm_10deg")
     st = cfg.stage("explore")
     assert point == OperatingPoint(st.variant, st.n_t, 1.0, st.error_kappa, st.min_inlier_ratio)
-    assert margin == pytest.approx(st.margin)  # the last step up to the allowance
+    assert margin == pytest.approx(st.margin) and clearance == st.final_step_clearance  # the last step up to the allowance
     odd = dataclasses.replace(cfg, stages={**cfg.stages, "explore": dataclasses.replace(st, consistency_t=0.0033)})
     with pytest.raises(ConfigError, match="consistency_limit_mm"):
         rs.stage_point(odd, "explore", "4mm_10deg")
     # a worst-frame limit on the grid is read as its fraction of the tolerance; one off the grid is refused
     wf = dataclasses.replace(st, worst_frame_t=0.0025, worst_frame_r=math.radians(6.25))
-    point, _ = rs.stage_point(dataclasses.replace(cfg, stages={**cfg.stages, "explore": wf}), "explore", "4mm_10deg")
+    point, *_ = rs.stage_point(dataclasses.replace(cfg, stages={**cfg.stages, "explore": wf}), "explore", "4mm_10deg")
     assert point.worst == 0.625
     uneven = dataclasses.replace(wf, worst_frame_r=math.radians(7.5))  # 0.625 x 4 mm but 0.75 x 10 deg
     odd = dataclasses.replace(cfg, stages={**cfg.stages, "explore": uneven})

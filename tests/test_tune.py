@@ -189,6 +189,9 @@ def test_a_stage_that_runs_up_to_the_allowance_is_tuned_so():
     # up to the allowance with a 1 deg margin: theta_p - 1 = x + 3 reaches each next position; at the stop
     # theta_p - 1 = x + 0.5 does not, and the arc ends there, 0.5 deg past the whole-step stop
     assert a.to_allowance_stops("next_step_logfit_lcb", 1.0 * D)[i15] == pytest.approx(20.75 * D)
+    # the stage's final_step_clearance_deg: only the last step ends short of the allowance, never behind the arm
+    assert a.to_allowance_stops("next_step_logfit_lcb", 1.0 * D, 0.3 * D)[i15] == pytest.approx(20.45 * D)
+    assert a.to_allowance_stops("next_step_logfit_lcb", 1.0 * D, 1.0 * D)[i15] == pytest.approx(20.25 * D)
     # a 2 deg margin: x + 2 never reaches the next position (2.25 deg on): the arc ends 2 deg past the first fit
     assert a.to_allowance_stops("next_step_logfit_lcb", 2.0 * D)[i15] == pytest.approx(POS[3] + 2.0 * D)
     # a model that is not valid there stops the arc at that position, as in the whole-step replay
@@ -203,6 +206,10 @@ def test_a_stage_that_runs_up_to_the_allowance_is_tuned_so():
     assert whole["_final"].n_t == 15 and up_to["_final"].n_t == 16
     assert whole["in_sample"]["incursions"] == 0 and up_to["in_sample"]["incursions"] == 0
     assert up_to["final_step_margin_deg"] == pytest.approx(1.0) and whole["final_step_margin_deg"] is None
+    # with the last step 0.3 deg short of the allowance, n_t 15 ends at 20.45 on a, inside its boundary
+    short = cross_validate([a, b], "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
+                           final_margin=1.0 * D, final_clearance=0.3 * D)
+    assert short["_final"].n_t == 15 and short["final_step_clearance_deg"] == pytest.approx(0.3)
 
 
 def _report(tolerance: str, stage: str, folds: dict[str, list[tuple[float, float]]], static: dict[str, float]):

@@ -112,14 +112,15 @@ class DatasetResult:
     # where none localized), what the loop's worst-frame limit reads after a step
     worst_drift: list[tuple[float, float]] = field(default_factory=list)
 
-    def to_allowance_stops(self, system: str, margin: float) -> list[float]:
+    def to_allowance_stops(self, system: str, margin: float, clearance: float = 0.0) -> list[float]:
         """`system`'s stop per n_t when the arm runs up to the allowance theta_p - margin (stop-and-go's
         `final_step: to_allowance`, and continuous sampling) instead of in whole steps.
 
         Replayed with what is known at the recorded positions: after x_k, the next position x_k + step
         is reached only if theta_p_k - margin reaches it; otherwise the arc ends at max(x_k, theta_p_k
-        - margin). A boundary at the range's end (no failure predicted inside it) allows the end itself.
-        At or before the whole-step rule's own stop, since step + margin >= step."""
+        - margin - clearance) (`clearance`: the stage's `final_step_clearance_deg`, rad). A boundary at the
+        range's end (no failure predicted inside it) allows the end itself. At or before the whole-step
+        rule's own stop, since step + margin >= step."""
         out = []
         for stop, path in zip(self.stops[system], self.theta_p_path[system]):
             end = stop
@@ -130,7 +131,7 @@ class DatasetResult:
                 if b >= self.x_max - 1e-12:
                     continue  # n_i does not reach n_t inside the range: nothing to keep a margin from
                 if b - margin < x + self.step - 1e-12:
-                    end = max(x, b - margin)
+                    end = max(x, b - margin - clearance)
                     break
             out.append(end)
         return out

@@ -80,7 +80,8 @@ class Grid:
 
     def __init__(self, arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tol: str,
                  hard_limit: float, error_aware: bool, final_margin: float | None = None,
-                 inlier_ratio: bool = False, strict_boundary: bool = False, worst_frame: bool = False) -> None:
+                 inlier_ratio: bool = False, strict_boundary: bool = False, worst_frame: bool = False,
+                 final_clearance: float = 0.0) -> None:
         self.arcs = arcs
         # strict: a lost position's crossing at the position before it (DatasetResult.actual_last_good)
         self.actual = np.array([r.actual_last_good[tol] if strict_boundary else r.actual[tol] for r in arcs])
@@ -99,7 +100,7 @@ class Grid:
             # whole steps (DatasetResult.to_allowance_stops). The guard and the error bound still stop at
             # their position, as does the inlier-ratio gate.
             base = np.array([r.stops[system] if final_margin is None or predictor != "next_step"
-                             else r.to_allowance_stops(system, final_margin) for r in arcs]).T
+                             else r.to_allowance_stops(system, final_margin, final_clearance) for r in arcs]).T
             for i in range(len(N_T) - 1, -1, -1):  # high n_t (conservative) first
                 for g in GUARD_FRACTIONS:
                     for k in kappas:
@@ -208,7 +209,8 @@ def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, 
     final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
     report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress,
                             final_margin=final_margin, inlier_ratio=inlier_ratio,
-                            strict_boundary=strict_boundary, worst_frame=worst_frame)
+                            strict_boundary=strict_boundary, worst_frame=worst_frame,
+                            final_clearance=st.final_step_clearance)
     report["stage"] = stage
     report["suites"] = [str(b) for b in benches]
     final = report.pop("_final")
@@ -225,14 +227,15 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
                    hard_limit: float, error_aware: bool = False, progress=lambda m: None,
                    robust: bool = True, final_margin: float | None = None,
                    inlier_ratio: bool = False, strict_boundary: bool = False,
-                   worst_frame: bool = False) -> dict[str, Any]:
+                   worst_frame: bool = False, final_clearance: float = 0.0) -> dict[str, Any]:
     """Leave-one-scene-out over `arcs` (evaluated datasets): per fold the choice and its held-out stops,
     the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs.
 
     `robust` (default): each choice also picks its safety slack by an inner leave-one-scene-out on
     its own training scenes (`Grid.choose_robust`); otherwise the plain best zero-incursion point.
     `final_margin` (rad): replay a run that goes up to the allowance theta_p - margin (stop-and-go's
-    `final_step: to_allowance`, continuous sampling); None: the paper's whole steps. `inlier_ratio`: also
+    `final_step: to_allowance`, continuous sampling); None: the paper's whole steps. `final_clearance` (rad):
+    the stage's `final_step_clearance_deg`, kept by that run's last step. `inlier_ratio`: also
     choose the inlier-ratio gate's limit (INLIER_RATIOS). `strict_boundary`: judge every stop against the
     boundary whose crossing toward a position that did not localize lies at the position before it (the
     earliest it can be; a live judge that samples inside such a step finds cliffs early in it), not at the
@@ -243,7 +246,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     if len(scenes) < 2:
         raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
     grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware, final_margin, inlier_ratio,
-                strict_boundary, worst_frame)
+                strict_boundary, worst_frame, final_clearance)
     scene_of = np.array([r.scene or r.name for r in arcs])
     deg = math.degrees(1.0)
     folds, held_stops, static_stops = [], np.full(len(arcs), np.nan), np.full(len(arcs), np.nan)
@@ -276,6 +279,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
         "tolerance": tolerance, "predictor": predictor, "variants": list(variants), "error_aware": error_aware,
         "inlier_ratio": inlier_ratio, "strict_boundary": strict_boundary, "worst_frame": worst_frame,
         "final_step_margin_deg": None if final_margin is None else final_margin * deg,
+        "final_step_clearance_deg": final_clearance * deg,
         "arcs": len(arcs), "scenes": scenes, "folds": folds,
         "cross_validated": cv, "cross_validated_static": cv_static,
         # the same held-out stops against the default judge's boundaries (a lost position's crossing at it)
@@ -337,7 +341,9 @@ def format_report(r: dict[str, Any]) -> str:
              f"{_recordings(r)} "
              f"(leave one scene out"
              + ("" if r.get("final_step_margin_deg") is None
-                else f"; up to the allowance, margin {r['final_step_margin_deg']:g} deg") + ")",
+                else f"; up to the allowance, margin {r['final_step_margin_deg']:g} deg"
+                + (f", the last step {r['final_step_clearance_deg']:g} deg short of it"
+                   if r.get("final_step_clearance_deg") else "")) + ")",
              f"  cross-validated: incursion rate {cv['incursion_rate']:.3f} ({cv['incursions']} arcs), "
              f"mean SPL {cv['mean_spl_deg']:.2f} deg{_judge(r)}"
              + ("" if r.get("cross_validated_incursions_default_judge") is None

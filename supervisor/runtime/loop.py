@@ -637,13 +637,18 @@ class SupervisorLoop:
         self.record.trajectory_q.append(np.array(executed.q, float))
         return False
 
+    def _final_target(self) -> float:
+        """Where the last, shorter step ends: theta_allowed less the stage's final-step clearance (that step is
+        taken on the prediction alone; no frame is taken after it)."""
+        return self._theta_allowed - self.stage.final_step_clearance
+
     def _may_step_to_allowance(self, s: float) -> bool:
-        """Whether the refused whole step may become one last step up to theta_allowed: the stage asks for
+        """Whether the refused whole step may become one last step toward theta_allowed: the stage asks for
         it, the last prediction was valid (the allowance is a predicted boundary minus the margin, not a
-        stop point), the consistency guard has not tripped, and the allowance lies at least
-        FINAL_STEP_MIN ahead of the arm."""
+        stop point), the consistency guard has not tripped, and the step's end (`_final_target`) lies at
+        least FINAL_STEP_MIN ahead of the arm."""
         return (self.stage.final_step == "to_allowance" and self._last_prediction_valid
-                and self._guard_stop is None and self._theta_allowed - s >= FINAL_STEP_MIN)
+                and self._guard_stop is None and self._final_target() - s >= FINAL_STEP_MIN)
 
     def _tick_stop_and_go(self, now: float, s: float, at_rest: bool) -> None:
         st = self.stage
@@ -672,9 +677,10 @@ class SupervisorLoop:
             elif not self._allow_next or nxt > self._theta_allowed + 1e-12:
                 if self._may_step_to_allowance(s):
                     # `final_step: to_allowance`: a whole step would pass theta_allowed, so one last,
-                    # shorter step up to it, then halt there (no frames: nothing more may follow it)
+                    # shorter step up to it (less the final-step clearance), then halt there (no frames:
+                    # nothing more may follow it)
                     self._final_step = True
-                    self._start_step(now, self._theta_allowed, final=True)
+                    self._start_step(now, self._final_target(), final=True)
                 else:
                     # next step not permitted: stay stopped (latched)
                     self._halt(now, self._boundary_halt_reason())
