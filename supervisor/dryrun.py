@@ -358,6 +358,7 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
     out: dict[str, Any] = {
         "stage": stage.name, "sampling": stage.sampling, "predictor": stage.predictor, "variant": stage.variant,
         "n_t": stage.n_t, "step_deg": math.degrees(stage.step), "margin_deg": math.degrees(stage.margin),
+        "final_step": stage.final_step, "final_step_clearance_deg": math.degrees(stage.final_step_clearance),
         "scene": scene_name, "azimuth_deg": math.degrees(spec.azimuth), "seed": spec.seed,
         "config_sha256": cfg.sha256, "halt_reason": record.halt_reason,
         "halt_angle_deg": math.degrees(halt),

@@ -15,13 +15,13 @@ def _load():
     return mod
 
 
-def _trial(run, name, halt, boundary, reason, trips=(), faults=(), n_t=11):
+def _trial(run, name, halt, boundary, reason, trips=(), faults=(), n_t=11, **settings):
     d = run / name
     d.mkdir(parents=True)
     (d / "summary.json").write_text(json.dumps({
         "halt_angle_deg": halt, "actual_boundary_judged_deg": boundary, "incursion": halt > boundary,
         "envelope_usage": halt / boundary, "halt_reason": reason, "max_overshoot_deg": -1e-6,
-        "revision_shortfall_deg": 0.0, "sampling": "stop_and_go", "faults": list(faults), "n_t": n_t}))
+        "revision_shortfall_deg": 0.0, "sampling": "stop_and_go", "faults": list(faults), "n_t": n_t, **settings}))
     events = [{"kind": "start"}] + [{"kind": "consistency_guard", "on": on, "s_deg": s} for on, s in trips]
     (d / "events.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
 
@@ -68,6 +68,15 @@ def test_a_changed_threshold_explains_a_changed_halt(tmp_path):
     _trial(b, "x_az000", 31.5, 32.0, "boundary", n_t=6)
     rep = mod.compare(mod.load_run(a), mod.load_run(b))
     assert rep["comparable"] and rep["differing"][0]["settings_differ"] == ["n_t"]
+
+
+def test_a_final_step_clearance_explains_a_changed_halt(tmp_path):
+    mod = _load()
+    a, b = tmp_path / "a", tmp_path / "b"
+    _trial(a, "x_az000", 31.8, 31.7, "boundary", final_step_clearance_deg=0.0)
+    _trial(b, "x_az000", 31.3, 31.7, "boundary", final_step_clearance_deg=0.5)
+    rep = mod.compare(mod.load_run(a), mod.load_run(b))
+    assert rep["comparable"] and rep["differing"][0]["settings_differ"] == ["final_step_clearance_deg"]
 
 
 def test_a_trial_without_a_judge_or_a_missing_run_is_refused_naming_it(tmp_path, capsys):
