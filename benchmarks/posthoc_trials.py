@@ -17,9 +17,11 @@ settings on the same seed, arc by arc. Settings that change a prediction (n_t, t
 go further (a looser limit) cannot be recomputed and are refused.
 
     python benchmarks/posthoc_trials.py RUN [RUN...] [--clearance-deg 0,0.5] [--worst-frame off,2.5/6.25]
-        [--guard off,3/7.5] [--min-ratio off,0.3] [--check LIVE_RUN] [-o report.json]
+        [--guard off,3/7.5] [--min-ratio off,0.3] [--loso] [--check LIVE_RUN] [-o report.json]
 
-Every combination of the lists is recomputed ("off": the run's own setting). Continuous trials in a run
+Every combination of the lists is recomputed ("off": the run's own setting). `--loso` also chooses among them
+by leave-one-scene-out over all the runs' arcs (per held-out scene: the fewest incursions on the other scenes,
+then the highest usage) and reports the held-out totals: numbers for a choice, on arcs it did not see. Continuous trials in a run
 (dryrun_trials.py runs both modes by default) are left out. Reports, never passes or fails (exit 0; 2 on an
 unreadable run, one without stop-and-go trials, or a setting that cannot be recomputed from it).
 """
@@ -136,7 +138,7 @@ def recompute(run: Path, change: Change) -> dict[str, dict]:
             halt = min(halt, t.positions[tripped])
         actual = float(s["actual_boundary_judged_deg"])
         coarse = (s.get("coarse_judge") or {}).get("actual_boundary_deg", actual)  # absent: nothing refined
-        out[t.name] = {"halt_deg": halt, "run_halt_deg": float(s["halt_angle_deg"]), "actual_deg": actual,
+        out[t.name] = {"trial": f"{run.name}/{t.name}", "scene": str(s.get("scene", t.name)), "halt_deg": halt, "run_halt_deg": float(s["halt_angle_deg"]), "actual_deg": actual,
                        "incursion": halt > actual + 1e-9, "usage": halt / actual if actual > 0 else None,
                        "coarse_incursion": halt > coarse + 1e-9, "coarse_usage": halt / coarse if coarse > 0 else None,
                        "last_step": t.final is not None, "tripped_at_step": tripped}
@@ -151,6 +153,29 @@ def totals(rows: dict[str, dict]) -> dict:
             "coarse_incursions": sum(r["coarse_incursion"] for r in rows.values()),
             "coarse_mean_envelope_usage": sum(c_use) / len(c_use) if c_use else None,
             "halts_moved": sum(abs(r["halt_deg"] - r["run_halt_deg"]) > 1e-9 for r in rows.values())}
+
+
+def leave_one_scene_out(table: dict[Change, list[dict]]) -> dict:
+    """Choose a change by leave-one-scene-out: per scene, the change with the fewest incursions and then the
+    highest mean usage on the other scenes' arcs (every run), applied to that scene's arcs; the held-out totals,
+    and the choice on every scene. `table`: per change, its recomputed rows (each with "scene")."""
+    changes = list(table)
+    scenes = sorted({r["scene"] for r in next(iter(table.values()))})
+
+    def score(ch: Change, keep) -> tuple[int, float]:
+        rows = [r for r in table[ch] if keep(r["scene"])]
+        return (sum(r["incursion"] for r in rows), -sum(r["usage"] for r in rows) / max(len(rows), 1))
+
+    held, folds = [], []
+    for sc in scenes:
+        best = min(changes, key=lambda ch: score(ch, lambda x: x != sc))  # ties: the earlier listed
+        rows = [r for r in table[best] if r["scene"] == sc]
+        held += rows
+        folds.append({"held_out": sc, "chosen": best.label(), "incursions": [r["trial"] for r in rows if r["incursion"]]})
+    every = min(changes, key=lambda ch: score(ch, lambda x: True))
+    return {"folds": folds, "chosen_on_every_scene": every.label(),
+            "cross_validated": {"trials": len(held), "incursions": sum(r["incursion"] for r in held),
+                                "mean_envelope_usage": sum(r["usage"] for r in held) / len(held)}}
 
 
 def check(recomputed: dict[str, dict], live: dict[str, dict]) -> list[dict]:
@@ -205,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--guard", default="off", help="mean-drift guard limits MM/DEG, comma-separated, or off")
     ap.add_argument("--min-ratio", default="off", help="inlier-ratio gate limits, comma-separated, or off")
     ap.add_argument("--check", type=Path, help="a live run with the last combination, on the first RUN's seed")
+    ap.add_argument("--loso", action="store_true",
+                    help="also choose among the combinations by leave-one-scene-out over every RUN's arcs")
     ap.add_argument("-o", "--output", type=Path, help="write the report as JSON")
     a = ap.parse_args(argv)
     try:
@@ -213,15 +240,25 @@ def main(argv: list[str] | None = None) -> int:
             clearances, _limits(a.worst_frame, "--worst-frame"), _limits(a.guard, "--guard"),
             _numbers(a.min_ratio, "--min-ratio"))]
         report: dict = {"runs": {}}
+        table: dict[Change, list[dict]] = {ch: [] for ch in changes}
         for run in a.runs:
             per = report["runs"][str(run)] = []
             for ch in changes:
-                t = totals(recompute(run, ch))
+                rows = recompute(run, ch)
+                table[ch] += rows.values()
+                t = totals(rows)
                 per.append({"change": ch.label(), **t})
                 print(f"{run} {ch.label()}: {t['trials']} trials, {len(t['incursions'])} incursions "
                       f"{t['incursions']}, usage {100 * t['mean_envelope_usage']:.2f}% "
                       f"(coarse judge {t['coarse_incursions']}, {100 * t['coarse_mean_envelope_usage']:.2f}%), "
                       f"{t['halts_moved']} halts moved")
+        if a.loso:
+            cv = report["leave_one_scene_out"] = leave_one_scene_out(table)
+            c = cv["cross_validated"]
+            print(f"leave one scene out over {c['trials']} arcs of {len(a.runs)} runs: {c['incursions']} incursions, "
+                  f"usage {100 * c['mean_envelope_usage']:.2f}%; chosen on every scene: {cv['chosen_on_every_scene']}")
+            for f in cv["folds"]:
+                print(f"  without {f['held_out']}: {f['chosen']}" + (f"; passed {f['incursions']}" if f["incursions"] else ""))
         if a.check is not None:
             bad = check(recompute(a.runs[0], changes[-1]), load_run(a.check))
             report["check"] = {"live": str(a.check), "change": changes[-1].label(), "differ": bad}

@@ -124,3 +124,15 @@ def test_a_live_run_is_checked_arc_by_arc_and_bad_runs_are_refused(run, tmp_path
     empty.mkdir()
     assert mod.main([str(empty)]) == 2
     assert "no finished stop-and-go trial" in capsys.readouterr().err
+
+
+def test_leave_one_scene_out_chooses_without_the_held_out_scene(run):
+    mod = _load()
+    plain, short = mod.Change(), mod.Change(0.5)
+    table = {ch: list(mod.recompute(run, ch).values()) for ch in (plain, short)}
+    cv = mod.leave_one_scene_out(table)
+    chosen = {f["held_out"]: f["chosen"] for f in cv["folds"]}
+    # without the cliff arc nothing is passed either way, and no clearance uses more: the cliff is then passed
+    assert chosen["cliff_az000_stop_and_go"] == plain.label()
+    assert chosen["short_az000_stop_and_go"] == short.label() == cv["chosen_on_every_scene"]
+    assert cv["cross_validated"]["incursions"] == 1 and cv["cross_validated"]["trials"] == 3
