@@ -6,6 +6,7 @@ Errors name the file, the dotted key and what was expected.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import math
 from collections.abc import Mapping
@@ -101,6 +102,7 @@ class Config:
     can: CanSettings | None = None  # the CAN side channel (`can:`; absent or null: none)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     faults: tuple[FaultSpec, ...] = ()  # `faults:` simulator fault injection (sim drivers only; default none)
+    files: tuple[Path, ...] = ()  # the `extends:` chain as read: this file first, then what it extends
 
     def stage(self, name: str | None = None) -> StageConfig:
         """The named stage (default: `default_stage`); an unknown name is a ConfigError."""
@@ -121,8 +123,18 @@ def load_config(path: str | Path | None = None) -> Config:
     (relative to the extending file's folder): the base is loaded and validated on its own first, so an
     error in it names the base file, then the extending file's keys are laid over it (mappings merge key
     by key, anything else, lists and null included, replaces). `sha256` covers the whole chain."""
+    return load_config_document(path)[0]
+
+
+def load_config_document(path: str | Path | None = None) -> tuple[Config, object]:
+    """`load_config`, and the merged document (units as written) the configuration was built from: the
+    chain is read once, so the two (and `Config.sha256`) cannot disagree if a file changes meanwhile."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    doc, digest, _ = resolve_config(path)
+    doc, digest, files = resolve_config(path)
+    return _build(copy.deepcopy(doc), path, digest, files), doc
+
+
+def _build(doc: object, path: Path, digest: str, files: tuple[Path, ...]) -> Config:
     root = Node(doc, path)
     cfg = Config(
         robot=_robot(root.child("robot"), path),
@@ -137,6 +149,7 @@ def load_config(path: str | Path | None = None) -> Config:
         faults=_faults(root),
         file=str(path),
         sha256=digest,
+        files=files,
     )
     _check_faults_on_sim(cfg, root)
     if cfg.default_stage not in cfg.stages:
@@ -174,8 +187,8 @@ def _read_chain(path: Path, chain: tuple[Path, ...]) -> tuple[object, str, tuple
         raise ConfigError(path, "extends", f"the configuration file {str(base_path)!r} {problem} "
                                            "(a relative name is taken from this file's folder)")
     base_doc, base_digest, files = _read_chain(base_path, (*chain, here))  # finds a cycle before recursing
-    if not chain:
-        load_config(base_path)  # the base is valid on its own, so an error in it names its own file
+    # the base is valid on its own (as read here, once), so an error in it names its own file
+    _build(copy.deepcopy(base_doc), base_path, base_digest, files)
     merged = _overlay(base_doc, doc)
     return merged, hashlib.sha256(raw + b"\0extends\0" + base_digest.encode()).hexdigest(), (path, *files)
 

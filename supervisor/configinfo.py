@@ -12,7 +12,7 @@ from pathlib import Path
 
 import yaml
 
-from supervisor.config import Config, load_config, resolve_config
+from supervisor.config import Config, load_config, load_config_document
 from supervisor.paths import DEFAULT_CONFIG
 
 
@@ -23,13 +23,11 @@ def _name(p: Path) -> str:
 def check_report(path: str | Path | None) -> str:
     """Validate the configuration at `path` (None: the embedded one) and describe it; a ConfigError names
     the file and key at fault."""
-    cfg = load_config(path)
-    _, _, files = resolve_config(path)
-    return describe(cfg, files)
+    return describe(load_config(path))
 
 
-def describe(cfg: Config, files: tuple[Path, ...]) -> str:
-    r, c = cfg.robot, cfg.camera
+def describe(cfg: Config) -> str:
+    r, c, files = cfg.robot, cfg.camera, cfg.files
     lines = [f"ok: {_name(files[0])}"]
     if len(files) > 1:
         lines.append("  extends: " + " -> ".join(_name(f) for f in files[1:]))
@@ -55,9 +53,8 @@ def describe(cfg: Config, files: tuple[Path, ...]) -> str:
 
 def show_document(path: str | Path | None) -> str:
     """The effective configuration (the chain merged, as written: mm, deg, ms) as YAML, after validating it."""
-    load_config(path)
-    doc, digest, files = resolve_config(path)
-    head = [f"# effective configuration of {_name(files[0])}"]
-    head += [f"# extends {_name(f)}" for f in files[1:]]
-    head.append(f"# sha256 {digest}")
+    cfg, doc = load_config_document(path)
+    head = [f"# effective configuration of {_name(cfg.files[0])}"]
+    head += [f"# extends {_name(f)}" for f in cfg.files[1:]]
+    head.append(f"# sha256 {cfg.sha256}")
     return "\n".join(head) + "\n" + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)

@@ -98,6 +98,19 @@ def test_an_error_in_the_base_names_the_base(tmp_path):
     assert (info.value.file, info.value.key) == (str(base), "stages.explore.n_t")
 
 
+def test_an_error_deep_in_the_chain_names_its_file_and_the_chain_is_recorded(tmp_path):
+    root = write(tmp_path / "root.yaml", {"extends": "default", "camera": {"frame_rate_hz": -1}})
+    site = write(tmp_path / "site.yaml", {"extends": "root.yaml", "stages": {"cut": {"n_t": 12}}})
+    cell = write(tmp_path / "cell.yaml", {"extends": "site.yaml", "stages": {"cut": {"n_t": 13}}})
+    with pytest.raises(ConfigError) as info:  # the site file does not fix it: the root is wrong on its own
+        load_config(cell)
+    assert info.value.file == str(root) and info.value.key.startswith("camera.frame_rate")
+    write(root, {"extends": "default", "camera": {"frame_rate_hz": 15}})
+    cfg = load_config(cell)
+    assert cfg.files == (cell, site, root, DEFAULT_CONFIG) and cfg.stages["cut"].n_t == 13
+    assert load_config().files == (DEFAULT_CONFIG,)
+
+
 def test_an_error_in_the_overlay_names_the_overlay(tmp_path):
     top = write(tmp_path / "top.yaml", {"extends": "default", "stages": {"explore": {"n_tt": 9}}})
     with pytest.raises(ConfigError) as info:

@@ -266,3 +266,23 @@ def test_the_headline_reads_what_cross_validation_reports():
         assert row["mean_spl_deg"] == pytest.approx(r["cross_validated"]["mean_spl_deg"])
         assert row["static_cv_mean_spl_deg"] == pytest.approx(r["cross_validated_static"]["mean_spl_deg"])
         assert row["static_best_deg"] == pytest.approx(20.0)
+
+
+def test_the_stage_yaml_of_a_configuration_that_extends_another_carries_the_inherited_keys(tmp_path):
+    from supervisor.config import load_config
+    from supervisor.errors import ConfigError
+    from supervisor.stages import load_stages
+
+    cell = tmp_path / "cell.yaml"  # a cell's file: one key of the stage changed, the rest inherited
+    cell.write_text("extends: default\nstages:\n  explore:\n    final_step_clearance_deg: 0.5\n")
+    arcs = [_arc("a", 0, 20, 0.5), _arc("b", 0, 30, 0.5), _arc("c", 0, 22, 0.2)]
+    r = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    cfg = load_config(cell)
+    st = load_stages(_written(tmp_path, stage_yaml(cfg, "explore", r["_final"], "4mm_10deg",
+                                                   {**r, "stage": "explore"})))["explore"]
+    shipped = load_config(None).stages["explore"]
+    assert st.n_t == r["_final"].n_t and st.final_step_clearance == pytest.approx(math.radians(0.5))
+    assert (st.sampling, st.final_step, st.step) == (shipped.sampling, shipped.final_step, shipped.step)
+    cell.write_text(cell.read_text() + "    n_t: 12\n")  # edited while the tuner ran: nothing is written
+    with pytest.raises(ConfigError, match="changed while tuning"):
+        stage_yaml(cfg, "explore", r["_final"], "4mm_10deg", {**r, "stage": "explore"})

@@ -42,7 +42,7 @@ from typing import Any, Sequence
 import numpy as np
 import yaml
 
-from supervisor.config import Config
+from supervisor.config import Config, resolve_config
 from supervisor.errors import ConfigError, DatasetError
 from supervisor.evaluation.experiments import N_T, TOLERANCES, DatasetResult, evaluate_suite
 from supervisor.evaluation.metrics import INCURSION_EPS
@@ -295,9 +295,14 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
 
 
 def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, report: dict[str, Any]) -> str:
-    """The stage's YAML mapping (as in the config file) with the tuned keys replaced."""
-    raw = yaml.safe_load(Path(cfg.file or DEFAULT_CONFIG).read_text(encoding="utf-8"))
-    node = copy.deepcopy(raw["stages"][stage])
+    """The stage's YAML mapping (as in the configuration, its `extends:` chain merged in) with the tuned keys
+    replaced. The chain is read again here: if it changed since `cfg` was loaded, nothing is written."""
+    path = Path(cfg.file or DEFAULT_CONFIG)
+    merged, digest, _ = resolve_config(path)
+    if digest != cfg.sha256:
+        raise ConfigError(path, f"stages.{stage}", "the configuration (or a file it extends) changed while "
+                                                   "tuning; run the tuner again")
+    node = copy.deepcopy(merged["stages"][stage])
     tt, tr = TOLERANCES[tolerance]
     node["variant"] = op.variant
     node["n_t"] = op.n_t
