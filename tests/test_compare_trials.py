@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib.util
 import json
 
+import pytest
+
 from supervisor.paths import REPO_ROOT
 
 
@@ -61,22 +63,15 @@ def test_an_arc_that_differs_with_the_same_trips_and_settings_marks_the_runs_not
     assert "DIFFERS WITH THE SAME GUARD TRIPS" in capsys.readouterr().out
 
 
-def test_a_changed_threshold_explains_a_changed_halt(tmp_path):
+@pytest.mark.parametrize("key, a_value, b_value, b_halt", [("n_t", 11, 6, 31.5),
+                                                             ("final_step_clearance_deg", 0.0, 0.5, 29.5)])
+def test_a_changed_setting_explains_a_changed_halt(tmp_path, key, a_value, b_value, b_halt):
     mod = _load()
     a, b = tmp_path / "a", tmp_path / "b"
-    _trial(a, "x_az000", 30.0, 32.0, "boundary", n_t=11)
-    _trial(b, "x_az000", 31.5, 32.0, "boundary", n_t=6)
+    _trial(a, "x_az000", 30.0, 32.0, "boundary", **{key: a_value})
+    _trial(b, "x_az000", b_halt, 32.0, "boundary", **{key: b_value})
     rep = mod.compare(mod.load_run(a), mod.load_run(b))
-    assert rep["comparable"] and rep["differing"][0]["settings_differ"] == ["n_t"]
-
-
-def test_a_final_step_clearance_explains_a_changed_halt(tmp_path):
-    mod = _load()
-    a, b = tmp_path / "a", tmp_path / "b"
-    _trial(a, "x_az000", 31.8, 31.7, "boundary", final_step_clearance_deg=0.0)
-    _trial(b, "x_az000", 31.3, 31.7, "boundary", final_step_clearance_deg=0.5)
-    rep = mod.compare(mod.load_run(a), mod.load_run(b))
-    assert rep["comparable"] and rep["differing"][0]["settings_differ"] == ["final_step_clearance_deg"]
+    assert rep["comparable"] and rep["differing"][0]["settings_differ"] == [key]
 
 
 def test_a_trial_without_a_judge_or_a_missing_run_is_refused_naming_it(tmp_path, capsys):
