@@ -112,8 +112,21 @@ def test_a_live_run_is_checked_arc_by_arc_and_bad_runs_are_refused(run, tmp_path
     live = tmp_path / "live"
     _trial(live, "cliff_az000_stop_and_go", 30.7, 31.0, [28.5, 30.0, 30.7], True, final_step_clearance_deg=0.5)
     _trial(live, "short_az000_stop_and_go", 30.15, 33.0, [28.5, 30.0, 30.15], True, final_step_clearance_deg=0.5)
-    bad = mod.check(mod.recompute(run, mod.Change(0.5)), mod.load_run(live))
-    assert [b["trial"] for b in bad] == ["short_az000_stop_and_go"]  # it should have stayed at 30.0
+    bad, apart = mod.check(mod.recompute(run, mod.Change(0.5)), mod.load_run(live))
+    assert [b["trial"] for b in bad] == ["short_az000_stop_and_go"] and apart == []  # it should have stayed at 30.0
+    # a stop rule halting sooner: the live oracle judges with the model of the earlier halt and may move the
+    # boundary; the halts agree, so that is reported apart, not as a disagreement. A moved judge where only the
+    # last step moved (the same model) is a disagreement.
+    wf_live = tmp_path / "wf_live"
+    _trial(wf_live, "cliff_az000_stop_and_go", 30.0, 30.86, [28.5, 30.0], False, worst_frame_limit_mm=3.0,
+           worst_frame_limit_deg=7.5)
+    _trial(wf_live, "whole_az000_stop_and_go", 30.0, 31.9, [28.5, 30.0], False, worst_frame_limit_mm=3.0,
+           worst_frame_limit_deg=7.5)
+    rows = mod.recompute(run, mod.Change(worst_frame=(3.0, 7.5)))
+    assert not rows["cliff_az000_stop_and_go"]["judge_exact"] and rows["whole_az000_stop_and_go"]["judge_exact"]
+    bad, apart = mod.check(rows, mod.load_run(wf_live))
+    assert [b["trial"] for b in bad] == ["whole_az000_stop_and_go"]
+    assert [(r["trial"], r["live_actual_deg"]) for r in apart] == [("cliff_az000_stop_and_go", 30.86)]
     assert mod.main([str(run), "--clearance-deg", "0,0.5", "--check", str(live)]) == 0
     assert "1 arcs differ" in capsys.readouterr().out
     assert mod.main([str(live)]) == 2  # already run with a clearance: not a base to recompute from
