@@ -26,9 +26,9 @@ go further (a looser limit) cannot be recomputed and are refused.
 Every combination of the lists is recomputed ("off": the run's own setting). `--loso` also chooses among them
 by leave-one-scene-out over all the runs' arcs (per held-out scene: the fewest incursions on the other scenes,
 then the highest usage) and reports the held-out totals: numbers for a choice, on arcs it did not see.
-Continuous trials in a run
-(dryrun_trials.py runs both modes by default) are left out. Reports, never passes or fails (exit 0; 2 on an
-unreadable run, one without stop-and-go trials, or a setting that cannot be recomputed from it).
+Continuous trials in a run (dryrun_trials.py runs both modes by default) are left out. Reports, never passes or
+fails (exit 0; 2 on an unreadable run, one without stop-and-go trials, or a setting that cannot be recomputed
+from it).
 """
 
 from __future__ import annotations
@@ -162,7 +162,7 @@ def totals(rows: dict[str, dict]) -> dict:
             "coarse_incursions": sum(r["coarse_incursion"] for r in rows.values()),
             "coarse_mean_envelope_usage": sum(c_use) / len(c_use) if c_use else None,
             "halts_moved": sum(abs(r["halt_deg"] - r["run_halt_deg"]) > 1e-9 for r in rows.values()),
-            "judged_with_the_run_s_model": sum(not r["judge_exact"] for r in rows.values())}
+            "approximate_judgements": sum(not r["judge_exact"] for r in rows.values())}
 
 
 def leave_one_scene_out(table: dict[Change, list[dict]]) -> dict:
@@ -268,8 +268,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"{t['incursions']}, usage {100 * t['mean_envelope_usage']:.2f}% "
                       f"(coarse judge {t['coarse_incursions']}, {100 * t['coarse_mean_envelope_usage']:.2f}%), "
                       f"{t['halts_moved']} halts moved"
-                      + (f", {t['judged_with_the_run_s_model']} of them stopped sooner by a rule (judged with the "
-                         "run's oracle; approximate)" if t["judged_with_the_run_s_model"] else ""))
+                      + (f", {t['approximate_judgements']} of them stopped sooner by a rule (judged with the "
+                         "run's oracle; approximate)" if t["approximate_judgements"] else ""))
         if a.loso:
             cv = report["leave_one_scene_out"] = leave_one_scene_out(table)
             c = cv["cross_validated"]
