@@ -4,7 +4,6 @@ the file and the key or line, never a traceback, never a non-finite or non-rigid
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -14,8 +13,8 @@ import pytest
 
 from supervisor.dataset.format import FRAMES_FILE, Dataset
 from supervisor.errors import ConfigError, DatasetError
-from supervisor.paths import REPO_ROOT
 from test_dataset_format import _write
+from benchmark_module import load_benchmark
 
 
 @pytest.fixture()
@@ -135,10 +134,7 @@ def test_motion_file_unknown_key_hint_lists_sweep_deg(tmp_path):
 
 
 def _dryrun_trials():
-    spec = importlib.util.spec_from_file_location("dryrun_trials", REPO_ROOT / "benchmarks" / "dryrun_trials.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("dryrun_trials")
 
 
 def test_dryrun_trials_write_only_under_out(tmp_path):

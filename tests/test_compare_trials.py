@@ -2,19 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import pytest
 
-from supervisor.paths import REPO_ROOT
+from benchmark_module import load_benchmark
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("compare_trials", REPO_ROOT / "benchmarks" / "compare_trials.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("compare_trials")
 
 
 def _trial(run, name, halt, boundary, reason, trips=(), faults=(), n_t=11, **settings):

@@ -3,21 +3,15 @@ them (tests/test_loop_final_step.py and tests/test_loop_failsafe.py check the lo
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 
 import pytest
 
-from supervisor.paths import REPO_ROOT
+from benchmark_module import load_benchmark
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("posthoc_trials", REPO_ROOT / "benchmarks" / "posthoc_trials.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # (its dataclasses resolve their annotations through it)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("posthoc_trials")
 
 
 def _trial(run, name, halt, boundary, targets, final, sampling="stop_and_go", coarse=None, readings=(), **extra):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
 
 import pytest
@@ -11,15 +10,12 @@ import pytest
 from supervisor.config import load_config
 from supervisor.errors import ConfigError
 from supervisor.evaluation.tune import OperatingPoint
-from supervisor.paths import REPO_ROOT
 from test_tune import _arc
+from benchmark_module import load_benchmark
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("replay_stage", REPO_ROOT / "benchmarks" / "replay_stage.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("replay_stage")
 
 
 def test_the_shipped_explore_point_is_read_from_the_config_and_an_off_grid_guard_is_refused():

@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 
 import pytest
 
 from supervisor.localization.offline import FrameArtifact, artifacts_csv, write_atomic
-from supervisor.paths import REPO_ROOT
+from benchmark_module import load_benchmark
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("sd_calibration", REPO_ROOT / "benchmarks" / "sd_calibration.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("sd_calibration")
 
 
 def _frame(k: int, position: int, n: int, t_err_mm: float, sd_mm: float, status: str = "OK") -> FrameArtifact:

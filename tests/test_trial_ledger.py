@@ -2,22 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 
 import pytest
 from scipy.stats import binom
 
 from supervisor.paths import REPO_ROOT
+from benchmark_module import load_benchmark
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("trial_ledger", REPO_ROOT / "benchmarks" / "trial_ledger.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # (its dataclasses resolve their annotations through it)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("trial_ledger")
 
 
 HEADER = ("label,stage,sampling,seed,fixed_latency_ms,arcs,incursions,incursion_arcs,usage_pct,coarse_usage_pct,"
