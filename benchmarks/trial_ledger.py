@@ -2,8 +2,9 @@
 
 `docs/trials.csv` holds one row per run of `benchmarks/dryrun_trials.py` (one stage setting, one sampling mode, one
 seed of renders never used before): its arcs, incursions (the refined judge) with the arcs they were on and by how
-much, its mean envelope usage (refined judge; the coarse judge's beside it), and the arcs with an overshoot or a
-fault. The README's trial table is generated from it (`table --write README.md`), and a test checks they agree.
+much, its mean envelope usage (refined judge; the coarse judge's beside it), the arcs with an overshoot or a
+fault, and, where the run recorded it, its incursions by the strict reading of a lost position (the boundary at the
+last position within tolerance before one that lost a frame: `supervisor.dryrun.verdicts`). The README's trial table is generated from it (`table --write README.md`), and a test checks they agree.
 
 A run of zero incursions does not show the rate is zero. Each setting's tally gives the exact one-sided 95% upper
 bound on its per-arc incursion rate (Clopper-Pearson, arcs taken as independent): k incursions in n arcs bound the
@@ -38,7 +39,7 @@ from scipy.stats import beta
 REPO = Path(__file__).resolve().parents[1]
 LEDGER = REPO / "docs" / "trials.csv"
 COLUMNS = ("label", "stage", "sampling", "seed", "fixed_latency_ms", "arcs", "incursions", "incursion_arcs",
-           "usage_pct", "coarse_usage_pct", "overshoots", "faults")
+           "usage_pct", "coarse_usage_pct", "overshoots", "faults", "strict_incursions")
 SAMPLINGS = ("stop_and_go", "continuous")
 CONFIDENCE = 0.95
 BEGIN = "<!-- trial ledger: generated from docs/trials.csv by `benchmarks/trial_ledger.py table --write README.md` -->"
@@ -60,6 +61,7 @@ class Run:
     coarse_usage_pct: float | None
     overshoots: int
     faults: int
+    strict_incursions: int | None  # by the strict reading of a lost position (supervisor.dryrun.verdicts); None: unknown
 
 
 def upper_bound(k: int, n: int, confidence: float = CONFIDENCE) -> float:
@@ -111,9 +113,14 @@ def _parse_row(row: dict[str, str], where: str) -> Run:
         if len(details) != inc:
             raise fail("incursion_arcs", f"one entry per incursion ({inc}), or none")
     latency = number("fixed_latency_ms", 0.0, 10_000.0, optional=True)
+    strict = None
+    if row["strict_incursions"].strip():
+        strict = integer("strict_incursions")
+        if not inc <= strict <= arcs:  # the strict reading's boundary is never later than the judge's
+            raise fail("strict_incursions", f"from the run's {inc} incursions to its {arcs} arcs, or empty")
     return Run(row["label"].strip(), row["stage"], row["sampling"], integer("seed"), latency, arcs, inc,
                tuple(details), number("usage_pct", 0.0, 100.0), number("coarse_usage_pct", 0.0, 100.0, True),
-               integer("overshoots"), integer("faults"))
+               integer("overshoots"), integer("faults"), strict)
 
 
 def read_ledger(path: Path = LEDGER) -> list[Run]:
@@ -154,13 +161,17 @@ def labels(runs: list[Run]) -> list[str]:
 
 
 def tally(runs: list[Run], label: str) -> dict:
-    """One setting's totals: seeds, arcs, incursions, the rate's upper bound, the arcs since its last incursion."""
+    """One setting's totals: seeds, arcs, incursions, the rate's upper bound, the arcs since its last incursion, and
+    the incursions by the strict reading of a lost position where the runs recorded it."""
     rs = [r for r in runs if r.label == label]
     n, k = sum(r.arcs for r in rs), sum(r.incursions for r in rs)
     last = max((i for i, r in enumerate(rs) if r.incursions), default=-1)
+    strict = [r for r in rs if r.strict_incursions is not None]
     return {"label": label, "stage": rs[0].stage, "sampling": rs[0].sampling, "seeds": [r.seed for r in rs],
             "arcs": n, "incursions": k, "rate": k / n, "rate_upper_95": upper_bound(k, n),
             "arcs_since_last_incursion": sum(r.arcs for r in rs[last + 1:]),
+            # the strict reading, over the runs that recorded it
+            "strict_incursions": sum(r.strict_incursions for r in strict), "strict_arcs": sum(r.arcs for r in strict),
             "usage_pct": [r.usage_pct for r in rs], "overshoots": sum(r.overshoots for r in rs),
             "faults": sum(r.faults for r in rs)}
 
@@ -186,7 +197,9 @@ def table(runs: list[Run]) -> str:
                                                else "") for r in rs)
         summary = (f"{t['incursions']} in {t['arcs']} arcs (≤ {_pct(100 * t['rate_upper_95'])})"
                    + (f"; none in the last {t['arcs_since_last_incursion']}"
-                      if t["incursions"] and t["arcs_since_last_incursion"] else ""))
+                      if t["incursions"] and t["arcs_since_last_incursion"] else "")
+                   + (f"; strictly read, {t['strict_incursions']} in the {t['strict_arcs']} arcs recorded"
+                      if t["strict_arcs"] else ""))
         out.append(f"| {label} | {seeds.replace('*', chr(92) + '*')} | {', '.join(incs)} | {usage} | {summary} |")
     return "\n".join(out) + "\n"
 
@@ -213,13 +226,15 @@ def run_totals(run: Path) -> dict:
             by = float(t["halt_angle_deg"]) - float(t["actual_boundary_judged_deg"])
             arcs.append(f"{t['scene']} az {round(float(t['azimuth_deg']))} +{by:.2f}")
     coarse = (summary.get("coarse_judge") or {}).get("mean_envelope_usage")
+    strict = (summary.get("strict_judge") or {}).get("incursions")  # None: judged before it was recorded
     return {"stage": t0["stage"], "sampling": t0["sampling"], "seed": str(int(t0["seed"])),
             "fixed_latency_ms": "" if t0.get("fixed_latency_ms") is None else f"{float(t0['fixed_latency_ms']):g}",
             "arcs": str(len(trials)), "incursions": str(int(summary["incursions"])),
             "incursion_arcs": "; ".join(arcs), "usage_pct": f"{100 * summary['mean_envelope_usage']:.2f}",
             "coarse_usage_pct": "" if coarse is None else f"{100 * coarse:.2f}",
             "overshoots": str(int(summary["trials_with_overshoot"])),
-            "faults": str(sum(bool(t.get("faults")) for t in trials))}
+            "faults": str(sum(bool(t.get("faults")) for t in trials)),
+            "strict_incursions": "" if strict is None else str(int(strict))}
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -288,7 +303,8 @@ def main(argv: list[str] | None = None) -> int:
                 s = tally(runs, label)
                 print(f"{label}: {s['incursions']} incursions in {s['arcs']} arcs over {len(s['seeds'])} seeds, "
                       f"rate {100 * s['rate']:.2f}% (95% upper bound {100 * s['rate_upper_95']:.2f}%), "
-                      f"{s['arcs_since_last_incursion']} arcs since the last; usage "
+                      f"{s['arcs_since_last_incursion']} arcs since the last; strictly read "
+                      f"{s['strict_incursions']} in the {s['strict_arcs']} arcs recorded; usage "
                       f"{min(s['usage_pct']):.1f}-{max(s['usage_pct']):.1f}%; overshoots {s['overshoots']}, "
                       f"faults {s['faults']}")
             return 0

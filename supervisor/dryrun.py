@@ -348,6 +348,32 @@ def _oracle_record(theta: list[float], t_err: list[float], r_err: list[float], n
             "boundary": {name: actual_boundary(th, te, re, tt, tr) for name, (tt, tr) in TOLERANCES.items()}}
 
 
+def _verdict(theta: np.ndarray, t_err: np.ndarray, r_err: np.ndarray, tol_t: float, tol_r: float, halt: float,
+             max_exec: float, lost: str = "at") -> tuple[float, bool, float | None]:
+    a = actual_boundary(theta, t_err, r_err, tol_t, tol_r, lost=lost)
+    return a, bool(max_exec > a + 1e-9), float(halt / a) if a > 0 else None
+
+
+def verdicts(oracle: dict[str, Any], tol_t: float, tol_r: float, halt: float, max_exec: float) -> dict[str, Any]:
+    """A run judged at one tolerance (m, rad; angles SI in, degrees out): the actual boundary, incursion (the arm
+    executed past it) and envelope usage (the halt over it), from every position the oracle sampled. Beside it:
+    - `coarse_judge`, when the oracle refined a step: the same from its coarse positions alone;
+    - `strict_judge`: where the first position beyond the tolerance lost a frame there is no error to interpolate
+      toward, and the judge puts the boundary at that position (the latest the error can have crossed); the
+      strict reading puts it at the position before (the earliest). A halt between the two is judged safe by the
+      one and an incursion by the other: the oracle's frames cannot tell which (a finer oracle may)."""
+    theta, t_err, r_err = (np.asarray(oracle[k], float) for k in ("theta", "t_err", "r_err"))
+    a, inc, usage = _verdict(theta, t_err, r_err, tol_t, tol_r, halt, max_exec)
+    out: dict[str, Any] = {"actual_boundary_judged_deg": math.degrees(a), "incursion": inc, "envelope_usage": usage}
+    if any(oracle.get("refined") or ()):
+        keep = ~np.asarray(oracle["refined"], bool)
+        c, c_inc, c_usage = _verdict(theta[keep], t_err[keep], r_err[keep], tol_t, tol_r, halt, max_exec)
+        out["coarse_judge"] = {"actual_boundary_deg": math.degrees(c), "incursion": c_inc, "envelope_usage": c_usage}
+    s, s_inc, s_usage = _verdict(theta, t_err, r_err, tol_t, tol_r, halt, max_exec, lost="last_good")
+    out["strict_judge"] = {"actual_boundary_deg": math.degrees(s), "incursion": s_inc, "envelope_usage": s_usage}
+    return out
+
+
 def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_theta: np.ndarray, oracle,
              events: EventLog, clock_time: float, wall_time: float, realtime: bool) -> dict[str, Any]:
     halt = record.halt_s
@@ -387,20 +413,9 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
             out["oracle_step_deg"], out["oracle_frames"] = math.degrees(oracle["step"]), oracle["frames"]
             out["oracle_refine"] = oracle["refine"]
         out["actual_boundary_deg"] = {k: math.degrees(v) for k, v in oracle["boundary"].items()}
-        # incursion and usage at the stage's own tolerance (cut: 2 mm/3 deg), the others beside them
-        name, tol_t, tol_r = judged_tolerance(stage)
-        a = actual_boundary(np.asarray(oracle["theta"]), np.asarray(oracle["t_err"]), np.asarray(oracle["r_err"]),
-                            tol_t, tol_r)
-        out["judged_tolerance"] = name
-        out["actual_boundary_judged_deg"] = math.degrees(a)
-        out["incursion"] = bool(max_exec > a + 1e-9)
-        out["envelope_usage"] = float(halt / a) if a > 0 else None
         out["incursion_by_tolerance"] = {k: bool(max_exec > v + 1e-9) for k, v in oracle["boundary"].items()}
-        if any(oracle.get("refined") or ()):  # what the judge would say on its coarse positions alone, beside it
-            keep = ~np.asarray(oracle["refined"], bool)
-            c = actual_boundary(np.asarray(oracle["theta"])[keep], np.asarray(oracle["t_err"])[keep],
-                                np.asarray(oracle["r_err"])[keep], tol_t, tol_r)
-            out["coarse_judge"] = {"actual_boundary_deg": math.degrees(c), "incursion": bool(max_exec > c + 1e-9),
-                                   "envelope_usage": float(halt / c) if c > 0 else None}
+        name, tol_t, tol_r = judged_tolerance(stage)
+        out["judged_tolerance"] = name
+        out.update(verdicts(oracle, tol_t, tol_r, halt, max_exec))
     return out
 

@@ -481,9 +481,39 @@ def test_the_oracle_can_judge_at_a_finer_step_with_more_frames(tmp_path: Path) -
                                 np.radians(coarse["r_err_deg"]), 0.004, math.radians(10.0))
     assert s["coarse_judge"]["actual_boundary_deg"] == pytest.approx(math.degrees(by_coarse), abs=1e-3)
     assert s["coarse_judge"]["envelope_usage"] == pytest.approx(s["halt_angle_deg"] / math.degrees(by_coarse), rel=1e-4)
+    # and by the strict reading of a lost position (never later than the judge's)
+    strict = actual_boundary(np.radians(rows["theta_deg"]), rows["t_err_mm"] / 1000, np.radians(rows["r_err_deg"]),
+                             0.004, math.radians(10.0), lost="last_good")
+    assert s["strict_judge"]["actual_boundary_deg"] == pytest.approx(math.degrees(strict), abs=1e-3)
+    assert s["strict_judge"]["actual_boundary_deg"] <= s["actual_boundary_judged_deg"] + 1e-9
     default = DryRunSpec(stage="explore", azimuth=0.0)
     assert math.degrees(default.oracle_step) == pytest.approx(2.25) and default.oracle_frames == 3
     assert default.oracle_refine == 3
+
+
+def test_a_halt_on_a_position_that_lost_a_frame_is_safe_by_the_judge_and_an_incursion_by_the_strict_reading():
+    import math
+
+    from supervisor.dryrun import verdicts
+
+    d = math.radians
+    # 0.3 mm at 16.5 deg, a frame lost at 17.25 (mean error inf), within tolerance again at 18.0 (the boundary is
+    # the first crossing): the judge puts it at 17.25, the strict reading at 16.5
+    oracle = {"theta": [d(15.75), d(16.5), d(17.25), d(18.0)], "t_err": [1e-4, 3e-4, math.inf, 5e-4],
+              "r_err": [d(0.1), d(0.2), math.inf, d(0.3)], "refined": [False, True, True, False]}
+    v = verdicts(oracle, 0.004, d(10.0), halt=d(17.25), max_exec=d(17.25))
+    assert v["actual_boundary_judged_deg"] == pytest.approx(17.25) and not v["incursion"]
+    assert v["envelope_usage"] == pytest.approx(1.0)
+    assert v["strict_judge"]["actual_boundary_deg"] == pytest.approx(16.5) and v["strict_judge"]["incursion"]
+    assert v["strict_judge"]["envelope_usage"] == pytest.approx(17.25 / 16.5)
+    assert v["coarse_judge"] == {"actual_boundary_deg": pytest.approx(18.0), "incursion": False,
+                                 "envelope_usage": pytest.approx(17.25 / 18.0)}
+    # a halt short of the last good position: safe by both
+    v = verdicts(oracle, 0.004, d(10.0), halt=d(16.0), max_exec=d(16.0))
+    assert not v["incursion"] and not v["strict_judge"]["incursion"]
+    # nothing refined: no coarse verdict beside the judge's (it would be the same)
+    plain = {k: oracle[k] for k in ("theta", "t_err", "r_err")}
+    assert "coarse_judge" not in verdicts(plain, 0.004, d(10.0), halt=d(16.0), max_exec=d(16.0))
 
 
 def test_dry_run_replay_of_a_recording_without_its_motion(dataset: Path, tmp_path: Path,
