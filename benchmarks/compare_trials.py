@@ -73,6 +73,7 @@ def run_stats(rows: dict[str, dict], names: list[str]) -> dict:
         "mean_envelope_usage": t["mean_envelope_usage"],
         "coarse_incursions": t["coarse_judge"]["incursions"],
         "coarse_mean_envelope_usage": t["coarse_judge"]["mean_envelope_usage"],
+        "strict_incursions": t["strict_judge"]["incursions"],  # None: a trial judged before it was recorded
         "max_overshoot_deg": t["max_overshoot_deg"],
         "faults": sum(len(r.get("faults") or ()) for r in rs),
         "halt_reasons": dict(Counter(r["halt_reason"] for r in rs)),
@@ -117,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     for label, run in (("a", args.run_a), ("b", args.run_b)):
         s = rep[label]
         print(f"{run}: {len(s['incursions'])} incursions {s['incursions']}; usage {_pct(s['mean_envelope_usage'])} "
-              f"(coarse judge {_pct(s['coarse_mean_envelope_usage'])}, {s['coarse_incursions']} incursions); "
+              f"(coarse judge {_pct(s['coarse_mean_envelope_usage'])}, {s['coarse_incursions']} incursions; "
+              f"strictly read {'n/a' if s['strict_incursions'] is None else s['strict_incursions']}); "
               f"max overshoot {s['max_overshoot_deg']} deg; faults {s['faults']}; halts {s['halt_reasons']}")
     for d in rep["differing"]:
         why = f", settings {d['settings_differ']}" if d["settings_differ"] else ""

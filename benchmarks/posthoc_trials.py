@@ -11,7 +11,8 @@ act only on where it ends:
   above it. Up to the first step where such a rule trips, the run is the same (the step's `consistency` and
   `inlier_ratio` events hold the readings the loop compares); there the arm halts where it stands, and no
   last step follows a trip.
-Each recomputed halt is judged against the run's own boundaries (refined and coarse). The oracle localizes
+Each recomputed halt is judged against the run's own boundaries (refined, coarse, and the strict reading of a lost
+position where the run recorded it). The oracle localizes
 with the target model the loop ended with, which is re-triangulated at every position the arm took frames at
 (`refine_continuous`): where only the last step moves (it takes no frames) the live run's judge is the same,
 exactly; where a stop rule halts the arm at an earlier step, the live run's oracle uses the model of that step
@@ -145,10 +146,12 @@ def recompute(run: Path, change: Change) -> dict[str, dict]:
             halt = min(halt, t.positions[tripped])
         actual = float(s["actual_boundary_judged_deg"])
         coarse = (s.get("coarse_judge") or {}).get("actual_boundary_deg", actual)  # absent: nothing refined
+        strict = (s.get("strict_judge") or {}).get("actual_boundary_deg")  # absent: judged before it was recorded
         out[t.name] = {"trial": f"{run.name}/{t.name}", "scene": str(s.get("scene", t.name)), "halt_deg": halt,
                        "run_halt_deg": float(s["halt_angle_deg"]), "actual_deg": actual,
                        "incursion": halt > actual + 1e-9, "usage": halt / actual if actual > 0 else None,
                        "coarse_incursion": halt > coarse + 1e-9, "coarse_usage": halt / coarse if coarse > 0 else None,
+                       "strict_incursion": None if strict is None else halt > strict + 1e-9,
                        "last_step": t.final is not None, "tripped_at_step": tripped,
                        "judge_exact": tripped is None or abs(halt - float(s["halt_angle_deg"])) <= 1e-9}
     return out
@@ -160,6 +163,8 @@ def totals(rows: dict[str, dict]) -> dict:
     return {"trials": len(rows), "incursions": sorted(k for k, r in rows.items() if r["incursion"]),
             "mean_envelope_usage": sum(use) / len(use) if use else None,
             "coarse_incursions": sum(r["coarse_incursion"] for r in rows.values()),
+            "strict_incursions": (None if any(r["strict_incursion"] is None for r in rows.values())
+                                  else sum(r["strict_incursion"] for r in rows.values())),
             "coarse_mean_envelope_usage": sum(c_use) / len(c_use) if c_use else None,
             "halts_moved": sum(abs(r["halt_deg"] - r["run_halt_deg"]) > 1e-9 for r in rows.values()),
             "approximate_judgements": sum(not r["judge_exact"] for r in rows.values())}
@@ -266,7 +271,8 @@ def main(argv: list[str] | None = None) -> int:
                 per.append({"change": ch.label(), **t})
                 print(f"{run} {ch.label()}: {t['trials']} trials, {len(t['incursions'])} incursions "
                       f"{t['incursions']}, usage {100 * t['mean_envelope_usage']:.2f}% "
-                      f"(coarse judge {t['coarse_incursions']}, {100 * t['coarse_mean_envelope_usage']:.2f}%), "
+                      f"(coarse judge {t['coarse_incursions']}, {100 * t['coarse_mean_envelope_usage']:.2f}%; "
+                      f"strictly read {'n/a' if t['strict_incursions'] is None else t['strict_incursions']}), "
                       f"{t['halts_moved']} halts moved"
                       + (f", {t['approximate_judgements']} of them stopped sooner by a rule (judged with the "
                          "run's oracle; approximate)" if t["approximate_judgements"] else ""))

@@ -80,3 +80,18 @@ def test_a_trial_without_a_judge_or_a_missing_run_is_refused_naming_it(tmp_path,
     assert "summary.json" in err and "'incursion'" in err
     assert mod.main([str(tmp_path / "nowhere"), str(tmp_path / "run")]) == 2
     assert "nowhere: not a trial run directory" in capsys.readouterr().err
+
+
+def test_each_run_counts_its_incursions_by_the_strict_reading_when_every_trial_recorded_it(tmp_path):
+    mod = _load()
+    a, b = tmp_path / "a", tmp_path / "b"
+    strict = lambda boundary, halt: {"actual_boundary_deg": boundary, "incursion": halt > boundary,  # noqa: E731
+                                     "envelope_usage": halt / boundary}
+    # x: halted on a position that lost a frame (the judge's boundary), past the strict reading's
+    _trial(a, "x_az000", 18.0, 18.0, "inlier_ratio", strict_judge=strict(17.25, 18.0))
+    _trial(a, "y_az090", 30.0, 32.0, "boundary", strict_judge=strict(32.0, 30.0))
+    _trial(b, "x_az000", 18.0, 18.0, "inlier_ratio")  # judged before the strict reading was recorded
+    _trial(b, "y_az090", 30.0, 32.0, "boundary", strict_judge=strict(32.0, 30.0))
+    rep = mod.compare(mod.load_run(a), mod.load_run(b))
+    assert rep["a"]["incursions"] == [] and rep["a"]["strict_incursions"] == 1
+    assert rep["b"]["strict_incursions"] is None

@@ -143,3 +143,18 @@ def test_leave_one_scene_out_chooses_without_the_held_out_scene(run):
     assert chosen["cliff_az000_stop_and_go"] == plain.label()
     assert chosen["short_az000_stop_and_go"] == short.label() == cv["chosen_on_every_scene"]
     assert cv["cross_validated"]["incursions"] == 1 and cv["cross_validated"]["trials"] == 3
+
+
+def test_a_recomputed_halt_is_also_judged_by_the_strict_reading_when_the_run_recorded_it(tmp_path):
+    mod = _load()
+    r = tmp_path / "run"
+    # the judge's boundary at 31.5 (a position that lost a frame), the strict reading's at 30.75: the last step to
+    # 31.2 is safe by the one and an incursion by the other; a 0.5 deg clearance ends it at 30.7, safe by both
+    _trial(r, "lost_az000_stop_and_go", 31.2, 31.5, [28.5, 30.0, 31.2], True, readings=QUIET + [(0.3, 0.6, 0.45)],
+           strict_judge={"actual_boundary_deg": 30.75})
+    zero, half = mod.recompute(r, mod.Change()), mod.recompute(r, mod.Change(0.5))
+    assert not zero["lost_az000_stop_and_go"]["incursion"] and zero["lost_az000_stop_and_go"]["strict_incursion"]
+    assert mod.totals(zero)["strict_incursions"] == 1 and mod.totals(half)["strict_incursions"] == 0
+    # a run judged before the strict reading was recorded: unknown, not zero
+    _trial(r, "old_az090_stop_and_go", 30.0, 32.0, [28.5, 30.0], False, readings=QUIET + [(0.3, 0.6, 0.45)])
+    assert mod.totals(mod.recompute(r, mod.Change()))["strict_incursions"] is None
