@@ -31,7 +31,7 @@ from dryrun_trials import trial_totals  # noqa: E402  (the totals dryrun_trials.
 
 # what a trial's summary records of its stage, beyond the guard's limits, that can move a halt by itself
 SETTINGS = ("predictor", "variant", "n_t", "step_deg", "margin_deg", "error_kappa", "min_inlier_ratio",
-            "sampling", "seed", "fixed_latency_ms", "final_step", "final_step_clearance_deg")
+            "inlier_ratio_frames", "sampling", "seed", "fixed_latency_ms", "final_step", "final_step_clearance_deg")
 
 
 def load_run(run: Path) -> dict[str, dict]:

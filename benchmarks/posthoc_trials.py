@@ -115,6 +115,9 @@ def _refuse_looser(run: Path, t: Trial, change: Change) -> None:
             if own > 0 and v > own + 1e-9:
                 raise ValueError(f"{run / t.name}: {what} {v:g} is looser than the run's {key} {own:g}; "
                                  "only a tighter one can be recomputed")
+    if change.min_ratio is not None and s.get("inlier_ratio_frames"):
+        raise ValueError(f"{run / t.name}: run with the gate read at every frame (inlier_ratio_frames "
+                         f"{s['inlier_ratio_frames']}); a gate on the steps' readings cannot be recomputed from it")
     if change.min_ratio is not None and change.min_ratio < float(s.get("min_inlier_ratio") or 0.0) - 1e-12:
         raise ValueError(f"{run / t.name}: min_inlier_ratio {change.min_ratio:g} is below the run's "
                          f"{s.get('min_inlier_ratio')}; only a higher one can be recomputed")

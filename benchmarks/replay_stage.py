@@ -49,6 +49,9 @@ def stage_point(cfg, stage: str, tolerance: str) -> tuple[OperatingPoint, float 
     guard = min(GUARD_FRACTIONS, key=lambda g: abs(g - guard))
     if st.min_inlier_ratio not in INLIER_RATIOS:
         raise ConfigError(where, f"stages.{stage}.min_inlier_ratio", f"expected one of {INLIER_RATIOS}")
+    if st.inlier_ratio_frames:
+        raise ConfigError(where, f"stages.{stage}.inlier_ratio_frames", "the replay reads the gate once per recorded "
+                          "position; a gate read at every frame is not replayed (trial it: dryrun_trials.py)")
     worsts = {st.worst_frame_t / tol_t, st.worst_frame_r / tol_r}
     worst = min(WORST_FRACTIONS, key=lambda w: abs(w - next(iter(worsts))))
     if len(worsts) != 1 or abs(worst - next(iter(worsts))) > 1e-9:

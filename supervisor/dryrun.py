@@ -399,7 +399,8 @@ def _summary(cfg, stage, scene_name: str, spec, record: RunRecord, executed_thet
         "n_samples": len(record.samples), "n_predictions": len(record.theta_p_history),
         "consistency_limit_mm": stage.consistency_t * 1000, "consistency_limit_deg": math.degrees(stage.consistency_r),
         "worst_frame_limit_mm": stage.worst_frame_t * 1000, "worst_frame_limit_deg": math.degrees(stage.worst_frame_r),
-        "min_inlier_ratio": stage.min_inlier_ratio, "error_kappa": stage.error_kappa,  # None: no error bound
+        "min_inlier_ratio": stage.min_inlier_ratio, "inlier_ratio_frames": stage.inlier_ratio_frames,
+        "error_kappa": stage.error_kappa,  # None: no error bound
         "max_consistency_drift_mm": 1000 * max((c[2] for c in record.consistency), default=0.0),
         "max_consistency_drift_deg": math.degrees(max((c[3] for c in record.consistency), default=0.0)),
         "faults": [e["fault"] for e in events.of_kind("fault")],

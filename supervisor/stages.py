@@ -81,6 +81,10 @@ class StageConfig:
     # the inlier-ratio gate: stop when a step's mean n_inliers / n_matches over its localized frames falls
     # below this (RANSAC near its breakdown: most matches are outliers); 0 = off
     min_inlier_ratio: float = 0.0
+    # the gate also re-read at every localized frame over the last this many localized frames (0: only when a
+    # step's window of frames closes). While moving, a step's window spans a whole step of arc, which the arm
+    # travels before the window's reading comes; a sliding reading answers a few frames after the ratio falls.
+    inlier_ratio_frames: int = 0
     overrun_budget: int = 3  # consecutive control ticks past their deadline that make a fault (real clock)
     tolerance_t: float | None = None  # m, the translation tolerance the stage is tuned for (None: not given)
     tolerance_r: float | None = None  # rad, the rotation tolerance
@@ -135,6 +139,7 @@ def parse_stage(name: str, n: Node) -> StageConfig:
         worst_frame_t=n.number("worst_frame_limit_mm", 0.0, min=0.0, max=1000.0) / 1000.0,
         worst_frame_r=math.radians(n.number("worst_frame_limit_deg", 0.0, min=0.0, max=180.0)),
         min_inlier_ratio=n.number("min_inlier_ratio", 0.0, min=0.0, max=0.99),
+        inlier_ratio_frames=n.integer("inlier_ratio_frames", 0, min=0, max=1000),
         overrun_budget=n.integer("overrun_budget", 3, min=1, max=1000),
         final_step=n.string("final_step", "whole", choices=FINAL_STEPS),
         final_step_clearance=math.radians(n.number("final_step_clearance_deg", 0.0, min=0.0, max=30.0)),
@@ -143,6 +148,9 @@ def parse_stage(name: str, n: Node) -> StageConfig:
     if stage.final_step != "whole" and stage.sampling != "stop_and_go":
         raise n.error("final_step", f"{stage.final_step!r} applies to stop_and_go sampling only (continuous "
                       "sampling always runs up to theta_allowed); remove it or use 'whole'")
+    if stage.inlier_ratio_frames > 0 and stage.min_inlier_ratio <= 0.0:
+        raise n.error("inlier_ratio_frames", "re-reads the inlier-ratio gate at every frame, which this stage does "
+                      "not have (min_inlier_ratio is 0 or unset); remove it or set min_inlier_ratio")
     if stage.final_step_clearance > 0.0 and stage.final_step != "to_allowance":
         raise n.error("final_step_clearance_deg", "applies to the last, shorter step of final_step: to_allowance "
                       f"only (this stage has final_step: {stage.final_step}); remove it or set final_step")

@@ -265,6 +265,37 @@ def test_inlier_ratio_gate_brakes_a_continuous_arc(cfg, tmp_path):
     assert off["halt_reason"] == "end_of_path" and off["max_overshoot_deg"] <= 1e-6
 
 
+def test_the_gate_read_at_every_frame_brakes_a_continuous_arc_before_the_steps_window_closes(cfg, tmp_path):
+    """With `inlier_ratio_frames` the gate is also read over the last N localized frames at every frame: while
+    moving, it trips within the step whose frames fall below the limit instead of when that step's window closes
+    (event `on: frames`), and the arm halts no later; nothing passes an allowance."""
+    import json
+
+    from supervisor.stages import PathLimits
+
+    # at 2 deg/s the arm brakes within 0.1 deg, so where the gate trips shows in where the arm halts
+    slow = PathLimits(velocity=math.radians(2.0), acceleration=math.radians(20.0), jerk=math.radians(200.0))
+    moving = _stage(cfg, sampling="continuous", final_step="whole", margin=math.radians(1.5), min_inlier_ratio=0.96,
+                    limits=slow)
+    (tmp_path / "step").mkdir()
+    (tmp_path / "frames").mkdir()
+    by_step = _run(cfg, moving, out=tmp_path / "step")
+    by_frame = _run(cfg, dataclasses.replace(moving, inlier_ratio_frames=3), out=tmp_path / "frames")
+
+    def gate(run):
+        lines = (tmp_path / run / "events.jsonl").read_text().splitlines()
+        return [e for e in map(json.loads, lines) if e["kind"] == "inlier_ratio_gate"]
+
+    step_gate, frame_gate = gate("step"), gate("frames")
+    assert by_step["halt_reason"] == by_frame["halt_reason"] == "inlier_ratio"
+    assert len(step_gate) == 1 and step_gate[0]["on"] == "step"
+    assert len(frame_gate) == 1 and frame_gate[0]["on"] == "frames" and frame_gate[0]["n_frames"] == 3
+    assert frame_gate[0]["ratio"] < 0.96 and frame_gate[0]["s_deg"] < step_gate[0]["s_deg"]
+    assert frame_gate[0]["t"] < step_gate[0]["t"]
+    assert by_frame["halt_angle_deg"] < by_step["halt_angle_deg"]
+    assert by_frame["max_overshoot_deg"] <= 1e-6 and by_frame["faults"] == []
+
+
 def test_robot_state_gap_stops(cfg):
     s = _run(cfg, _stage(cfg), wrap_robot=lambda r: _StallingRobot(r, after=400))
     assert s["faults"] == ["state_gap"]

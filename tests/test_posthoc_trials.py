@@ -158,3 +158,13 @@ def test_a_recomputed_halt_is_also_judged_by_the_strict_reading_when_the_run_rec
     # a run judged before the strict reading was recorded: unknown, not zero
     _trial(r, "old_az090_stop_and_go", 30.0, 32.0, [28.5, 30.0], False, readings=QUIET + [(0.3, 0.6, 0.45)])
     assert mod.totals(mod.recompute(r, mod.Change()))["strict_incursions"] is None
+
+
+def test_a_run_with_the_gate_read_at_every_frame_cannot_be_recomputed_for_another_gate(tmp_path, capsys):
+    mod = _load()
+    r = tmp_path / "run"
+    _trial(r, "frames_az000_stop_and_go", 30.0, 32.0, [28.5, 30.0], False, readings=QUIET + [(0.3, 0.6, 0.45)],
+           inlier_ratio_frames=5)
+    assert mod.main([str(r), "--min-ratio", "0.3"]) == 2
+    assert "inlier_ratio_frames 5" in capsys.readouterr().err
+    assert mod.main([str(r), "--clearance-deg", "0.5"]) == 0  # a last-step clearance moves no reading

@@ -36,6 +36,10 @@ def test_the_shipped_explore_point_is_read_from_the_config_and_an_off_grid_guard
     odd = dataclasses.replace(cfg, stages={**cfg.stages, "explore": uneven})
     with pytest.raises(ConfigError, match="worst_frame_limit_mm"):
         rs.stage_point(odd, "explore", "4mm_10deg")
+    # the gate read at every frame is not replayed (the recordings are read per position)
+    frames = dataclasses.replace(cfg, stages={**cfg.stages, "explore": dataclasses.replace(st, inlier_ratio_frames=5)})
+    with pytest.raises(ConfigError, match="inlier_ratio_frames"):
+        rs.stage_point(frames, "explore", "4mm_10deg")
 
 
 def test_kappa_changes_which_arcs_are_passed_and_both_judges_are_reported():

@@ -58,6 +58,9 @@ def test_parse_converts_to_si_and_fills_defaults():
     assert fast.min_inlier_ratio == 0.0  # the inlier-ratio gate is off unless a stage sets it
     assert stages_from(GOOD.replace("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: 0.24", 1))[
         "fast"].min_inlier_ratio == pytest.approx(0.24)
+    assert fast.inlier_ratio_frames == 0  # the gate is read per step unless a stage asks for every frame
+    assert stages_from(GOOD.replace("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: 0.24\n"
+                                    "    inlier_ratio_frames: 5", 1))["fast"].inlier_ratio_frames == 5
     assert slow.theta_allowed(20 * DEG) == pytest.approx(18 * DEG)
     assert slow.theta_allowed(40 * DEG) == pytest.approx(30 * DEG)
     assert slow.theta_allowed(None) == pytest.approx(30 * DEG)
@@ -112,6 +115,10 @@ def test_load_stages_from_file(tmp_path):
          "stages.fast.final_step_clearance_deg", ">= 0"),
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: 1", "stages.fast.min_inlier_ratio", "<= 0.99"),
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: -0.1", "stages.fast.min_inlier_ratio", ">= 0"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    inlier_ratio_frames: 5", "stages.fast.inlier_ratio_frames",
+         "min_inlier_ratio is 0 or unset"),
+        ("pose_gap_ms: 20", "pose_gap_ms: 20\n    min_inlier_ratio: 0.28\n    inlier_ratio_frames: 2.5",
+         "stages.fast.inlier_ratio_frames", "integer"),
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    worst_frame_limit_mm: -1", "stages.fast.worst_frame_limit_mm", ">= 0"),
         ("pose_gap_ms: 20", "pose_gap_ms: 20\n    worst_frame_limit_deg: .inf", "stages.fast.worst_frame_limit_deg",
          "finite"),

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -211,6 +212,8 @@ class SupervisorLoop:
         self._frames_in_step = 0
         self._awaiting: dict[int, int] = {}  # step -> localizations outstanding
         self._step_samples: dict[int, list[Sample]] = {}
+        # the last localized frames' inlier ratios, for the gate's per-frame reading (inlier_ratio_frames)
+        self._recent_ratios: deque[float] = deque(maxlen=max(self.stage.inlier_ratio_frames, 1))
         self._last_frame_t: float | None = None
         self._last_state_t: float | None = None
         self._last_ok: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target)
@@ -364,6 +367,7 @@ class SupervisorLoop:
                        res.n_matches)
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
+            self._check_inlier_ratio_frames(now, s)
             self._awaiting[job.step] -= 1
             if self.observer is not None:
                 self._hook("observer.result", self.observer.result, jr)
@@ -453,8 +457,29 @@ class SupervisorLoop:
         limit = self.stage.min_inlier_ratio
         if limit > 0 and ratio < limit and self._guard_stop is None:
             self._guard_stop, self._guard_reason = self._stop_point(), "inlier_ratio"
-            self.events.emit(now, "inlier_ratio_gate", step=step, ratio=ratio, limit=limit,
-                             s_deg=math.degrees(self.follower.state.s))
+            self.events.emit(now, "inlier_ratio_gate", step=step, ratio=ratio, limit=limit, on="step",
+                             n_frames=len(ok), s_deg=math.degrees(self.follower.state.s))
+
+    def _check_inlier_ratio_frames(self, now: float, s: Sample) -> None:
+        """The inlier-ratio gate re-read at every localized frame (`inlier_ratio_frames` > 0): the mean
+        n_inliers / n_matches over the last that many localized frames, whatever step they belong to; trips the
+        same latched stop as the step's reading (event `on: frames`)."""
+        window = self.stage.inlier_ratio_frames
+        if window <= 0 or self.stage.min_inlier_ratio <= 0 or s.status != "OK" or s.n_matches <= 0:
+            return
+        self._recent_ratios.append(s.n_inliers / s.n_matches)
+        if len(self._recent_ratios) < window or self._guard_stop is not None:
+            return
+        ratio = float(np.mean(self._recent_ratios))
+        if ratio < self.stage.min_inlier_ratio:
+            self._guard_stop, self._guard_reason = self._stop_point(), "inlier_ratio"
+            self.events.emit(now, "inlier_ratio_gate", step=s.step, ratio=ratio, limit=self.stage.min_inlier_ratio,
+                             on="frames", n_frames=window, s_deg=math.degrees(self.follower.state.s))
+            # between two predictions: the latched stop takes effect now (every later prediction keeps it)
+            if self._guard_stop < self._theta_allowed:
+                self._theta_allowed = self._guard_stop
+                self._record_allowance(now, self._guard_stop)
+            self._allow_next = False
 
     # -- faults and halts ----------------------------------------------------------------
     def _fault(self, now: float, kind: str, detail: str) -> None:
