@@ -4,7 +4,8 @@
 seed of renders never used before): its arcs, incursions (the refined judge) with the arcs they were on and by how
 much, its mean envelope usage (refined judge; the coarse judge's beside it), the arcs with an overshoot or a
 fault, and, where the run recorded it, its incursions by the strict reading of a lost position (the boundary at the
-last position within tolerance before one that lost a frame: `supervisor.dryrun.verdicts`). The README's trial table is generated from it (`table --write README.md`), and a test checks they agree.
+last position within tolerance before one that lost a frame: `supervisor.dryrun.verdicts`). The README's trial
+table is generated from it (`table --write README.md`), and a test checks they agree.
 
 A run of zero incursions does not show the rate is zero. Each setting's tally gives the exact one-sided 95% upper
 bound on its per-arc incursion rate (Clopper-Pearson, arcs taken as independent): k incursions in n arcs bound the
@@ -61,7 +62,8 @@ class Run:
     coarse_usage_pct: float | None
     overshoots: int
     faults: int
-    strict_incursions: int | None  # by the strict reading of a lost position (supervisor.dryrun.verdicts); None: unknown
+    # incursions by the strict reading of a lost position (supervisor.dryrun.verdicts); None: not recorded
+    strict_incursions: int | None
 
 
 def upper_bound(k: int, n: int, confidence: float = CONFIDENCE) -> float:
@@ -95,7 +97,7 @@ def _parse_row(row: dict[str, str], where: str) -> Run:
 
     if not row["label"].strip():
         raise fail("label", "the setting's name")
-    if not re.fullmatch(r"[a-z][a-z0-9_]*", row["stage"]):
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", row["stage"]):  # as supervisor.stages names them
         raise fail("stage", "a stage name")
     if row["sampling"] not in SAMPLINGS:
         raise fail("sampling", " or ".join(SAMPLINGS))

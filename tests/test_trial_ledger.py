@@ -73,7 +73,8 @@ def test_tallies_count_arcs_incursions_and_the_arcs_since_the_last(tmp_path):
     assert t["rate_upper_95"] == pytest.approx(mod.upper_bound(1, 117))
     assert (t["strict_incursions"], t["strict_arcs"]) == (1, 78)  # the first run did not record it
     table = mod.table(runs)
-    assert "| a | 1, 2\\*, 3\\* | 1 (`tray_walls` az 0 by 0.41°), 0, 0 | 86.0% (84.0%), 85.1% (83.5%), 87.0% |" in table
+    assert ("| a | 1, 2\\*, 3\\* | 1 (`tray_walls` az 0 by 0.41°), 0, 0 | 86.0% (84.0%), 85.1% (83.5%), 87.0% |"
+            in table)
     assert "1 in 117 arcs (≤ 4.0%); none in the last 78; strictly read, 1 in the 78 arcs recorded |" in table
     assert "| b | 1 | 0 | 93.0% (92.0%) | 0 in 39 arcs (≤ 7.4%) |" in table
 
