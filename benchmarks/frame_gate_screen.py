@@ -12,7 +12,8 @@ final model for the oracle), and the arm's speed is read from the frames. A sett
 leave-one-scene-out (`--loso`, as in posthoc_trials.py) and then tried live against the shipped stage on a fresh
 seed (dryrun_trials.py --fixed-latency-ms, compare_trials.py).
 
-    python benchmarks/frame_gate_screen.py RUN... [--windows off,5,8,12] [--limits 0.28,0.24] [--loso] [-o OUT]
+    python benchmarks/frame_gate_screen.py RUN... [--windows off,5,8,12] [--limits 0.28,0.24] [--loso]
+        [--config CONFIG] [--stage explore_continuous] [-o OUT]
 
 Stop-and-go trials in a run are left out (the arm stands while a step's frames are read). Reports, never passes or
 fails (exit 0; 2 on an unreadable run or bad arguments).
@@ -33,6 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from compare_trials import load_run  # noqa: E402
 from posthoc_trials import leave_one_scene_out  # noqa: E402
 
+from supervisor.config import load_config  # noqa: E402
+from supervisor.errors import ConfigError  # noqa: E402
 from supervisor.motion.braking import BrakingModel, PathLimits, PathState  # noqa: E402
 
 SPEED_FRAMES = 3  # the arm's speed at a frame: over this many frames back
@@ -128,17 +131,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs", nargs="+", type=Path, help="dryrun_trials.py output directories (continuous trials)")
     ap.add_argument("--windows", default="off,5,8,12", help="frames in the window, comma-separated, or off")
     ap.add_argument("--limits", default="0.28", help="the gate's limits, comma-separated")
-    ap.add_argument("--velocity-deg-s", type=float, default=10.0, help="the stage's path limits (default: explore_"
-                    "continuous's 10 deg/s, 20 deg/s^2, 200 deg/s^3)")
-    ap.add_argument("--acceleration-deg-s2", type=float, default=20.0)
-    ap.add_argument("--jerk-deg-s3", type=float, default=200.0)
+    ap.add_argument("--config", default=None, help="configuration YAML the runs used (default: the embedded one)")
+    ap.add_argument("--stage", default="explore_continuous", help="the stage whose path limits the arm brakes under")
     ap.add_argument("--loso", action="store_true", help="choose by leave-one-scene-out over every run's arcs")
     ap.add_argument("-o", "--out", type=Path, help="also write the report as JSON")
     a = ap.parse_args(argv)
     try:
         gates = _gates(a.windows, a.limits)
-        limits = PathLimits(math.radians(a.velocity_deg_s), math.radians(a.acceleration_deg_s2),
-                            math.radians(a.jerk_deg_s3))
+        limits = load_config(a.config).stage(a.stage).limits
         table: dict[FrameGate, list[dict]] = {g: [] for g in gates}
         report: dict = {"runs": {}}
         for run in a.runs:
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
                 per.append({"gate": g.label(), **t})
                 print(f"{run} {g.label()}: {t['trials']} trials, {len(t['incursions'])} incursions "
                       f"{t['incursions']}, usage {100 * t['mean_envelope_usage']:.2f}%, {t['halts_moved']} halts moved")
-    except ValueError as exc:
+    except (ValueError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if a.loso:

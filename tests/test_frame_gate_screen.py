@@ -85,3 +85,12 @@ def test_the_command_line_reports_each_gate_and_refuses_what_it_cannot_screen(tm
     assert "no finished continuous trial" in capsys.readouterr().err
     assert mod.main([str(run), "--windows", "0"]) == 2
     assert mod.main([str(run), "--limits", "1.5"]) == 2
+
+
+def test_the_path_limits_come_from_the_stage_of_the_config_the_runs_used(tmp_path, capsys):
+    mod = _load()
+    run = tmp_path / "run"
+    _trial(run, "cliff_az000_continuous", 5.9, 5.0, [0.9] * 50 + [0.2] * 20)
+    assert mod.main([str(run), "--windows", "4", "--stage", "cut"]) == 0  # cut brakes under its own limits
+    assert mod.main([str(run), "--stage", "nonesuch"]) == 2
+    assert "unknown stage 'nonesuch'" in capsys.readouterr().err
