@@ -454,32 +454,35 @@ class SupervisorLoop:
             return  # nothing localized: n_i = 0 speaks for itself
         ratio = float(np.mean([s.n_inliers / s.n_matches for s in ok]))
         self.events.emit(now, "inlier_ratio", step=step, ratio=ratio, n_frames=len(ok))
-        limit = self.stage.min_inlier_ratio
-        if limit > 0 and ratio < limit and self._guard_stop is None:
-            self._guard_stop, self._guard_reason = self._stop_point(), "inlier_ratio"
-            self.events.emit(now, "inlier_ratio_gate", step=step, ratio=ratio, limit=limit, on="step",
-                             n_frames=len(ok), s_deg=math.degrees(self.follower.state.s))
+        self._trip_inlier_ratio(now, step, ratio, "step", len(ok))
 
     def _check_inlier_ratio_frames(self, now: float, s: Sample) -> None:
         """The inlier-ratio gate re-read at every localized frame (`inlier_ratio_frames` > 0): the mean
         n_inliers / n_matches over the last that many localized frames, whatever step they belong to; trips the
         same latched stop as the step's reading (event `on: frames`)."""
         window = self.stage.inlier_ratio_frames
-        if window <= 0 or self.stage.min_inlier_ratio <= 0 or s.status != "OK" or s.n_matches <= 0:
+        if window <= 0 or s.status != "OK" or s.n_matches <= 0:
             return
         self._recent_ratios.append(s.n_inliers / s.n_matches)
-        if len(self._recent_ratios) < window or self._guard_stop is not None:
+        if len(self._recent_ratios) < window:
             return
-        ratio = float(np.mean(self._recent_ratios))
-        if ratio < self.stage.min_inlier_ratio:
-            self._guard_stop, self._guard_reason = self._stop_point(), "inlier_ratio"
-            self.events.emit(now, "inlier_ratio_gate", step=s.step, ratio=ratio, limit=self.stage.min_inlier_ratio,
-                             on="frames", n_frames=window, s_deg=math.degrees(self.follower.state.s))
+        if self._trip_inlier_ratio(now, s.step, float(np.mean(self._recent_ratios)), "frames", window):
             # between two predictions: the latched stop takes effect now (every later prediction keeps it)
             if self._guard_stop < self._theta_allowed:
                 self._theta_allowed = self._guard_stop
                 self._record_allowance(now, self._guard_stop)
             self._allow_next = False
+
+    def _trip_inlier_ratio(self, now: float, step: int, ratio: float, on: str, n_frames: int) -> bool:
+        """Latch the gate's stop (like the guard's) when `ratio`, read `on` a step or the last frames, is below the
+        stage's `min_inlier_ratio` and nothing is latched yet; True if it tripped now."""
+        limit = self.stage.min_inlier_ratio
+        if not (limit > 0 and ratio < limit and self._guard_stop is None):
+            return False
+        self._guard_stop, self._guard_reason = self._stop_point(), "inlier_ratio"
+        self.events.emit(now, "inlier_ratio_gate", step=step, ratio=ratio, limit=limit, on=on, n_frames=n_frames,
+                         s_deg=math.degrees(self.follower.state.s))
+        return True
 
     # -- faults and halts ----------------------------------------------------------------
     def _fault(self, now: float, kind: str, detail: str) -> None:
