@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from supervisor.evaluation.cache import read_artifacts  # noqa: E402
 from supervisor.evaluation.experiments import TOLERANCES, _per_position  # noqa: E402
 from supervisor.evaluation.metrics import actual_boundary  # noqa: E402
-from supervisor.localization.offline import write_atomic  # noqa: E402
+from supervisor.outputs import write_atomic  # noqa: E402
 
 
 def boundaries(cache: Path) -> dict[str, dict[str, float]]:

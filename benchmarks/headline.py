@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from supervisor.dataset.benchmark import SUITES  # noqa: E402
 from supervisor.evaluation.headline import format_headline, headline  # noqa: E402
-from supervisor.localization.offline import write_atomic  # noqa: E402
+from supervisor.outputs import write_atomic  # noqa: E402
 
 
 def _load(path: Path) -> dict:

@@ -27,15 +27,17 @@ import csv
 import io
 import json
 import math
-import os
 import re
 import sys
-import tempfile
 from dataclasses import dataclass
 from decimal import ROUND_HALF_UP, Decimal
 from pathlib import Path
 
 from scipy.stats import beta
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from supervisor.outputs import write_atomic  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 LEDGER = REPO / "docs" / "trials.csv"
@@ -45,6 +47,7 @@ SAMPLINGS = ("stop_and_go", "continuous")
 CONFIDENCE = 0.95
 BEGIN = "<!-- trial ledger: generated from docs/trials.csv by `benchmarks/trial_ledger.py table --write README.md` -->"
 END = "<!-- end of trial ledger -->"
+FIXED_LATENCY_MARK = "\\*"  # the README's footnote mark for a run at a fixed latency (markdown's escaped *)
 _ARC = re.compile(r"^(?P<scene>[a-z0-9_]+) az (?P<az>\d{1,3}) \+(?P<by>\d+(\.\d+)?)$")
 
 
@@ -190,7 +193,7 @@ def table(runs: list[Run]) -> str:
     for label in labels(runs):
         rs = [r for r in runs if r.label == label]
         t = tally(runs, label)
-        seeds = ", ".join(f"{r.seed}{'*' if r.fixed_latency_ms is not None else ''}" for r in rs)
+        seeds = ", ".join(str(r.seed) + (FIXED_LATENCY_MARK if r.fixed_latency_ms is not None else "") for r in rs)
         incs = []
         for r in rs:
             arcs = "; ".join(f"`{s}` az {a} by {by:.2f}°" for s, a, by in r.incursion_arcs)
@@ -202,7 +205,7 @@ def table(runs: list[Run]) -> str:
                       if t["incursions"] and t["arcs_since_last_incursion"] else "")
                    + (f"; strictly read, {t['strict_incursions']} in the {t['strict_arcs']} arcs recorded"
                       if t["strict_arcs"] else ""))
-        out.append(f"| {label} | {seeds.replace('*', chr(92) + '*')} | {', '.join(incs)} | {usage} | {summary} |")
+        out.append(f"| {label} | {seeds} | {', '.join(incs)} | {usage} | {summary} |")
     return "\n".join(out) + "\n"
 
 
@@ -239,22 +242,13 @@ def run_totals(run: Path) -> dict:
             "strict_incursions": "" if strict is None else str(int(strict))}
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def add(ledger: Path, run: Path, label: str, new: bool = False) -> Run:
     """Append a finished run under `label` (an existing setting, or a new one with `new`); returns its row."""
-    runs = read_ledger(ledger)
+    try:
+        text = ledger.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ValueError(f"{ledger}: cannot read the ledger ({exc.strerror})") from exc
+    runs = parse_ledger(text, str(ledger))
     fields = {"label": label, **run_totals(run)}
     known = label in labels(runs)
     if new == known:
@@ -263,12 +257,11 @@ def add(ledger: Path, run: Path, label: str, new: bool = False) -> Run:
     row = _parse_row(fields, f"{run}/trials.json")
     buf = io.StringIO()
     csv.writer(buf, lineterminator="\n").writerow([fields[c] for c in COLUMNS])
-    text = ledger.read_text(encoding="utf-8")
     text = text if text.endswith("\n") else text + "\n"
     candidate = text + buf.getvalue()
     # the whole new ledger is validated (a duplicate seed, another stage under the label) before it replaces the old
     parse_ledger(candidate, f"{ledger} with {run} added")
-    _write_atomic(ledger, candidate)
+    write_atomic(ledger, candidate.encode("utf-8"))
     return row
 
 
@@ -324,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             print(f"{target}: the trial table matches {args.ledger}")
             return 0
-        _write_atomic(target, text[:i] + block + text[j:])
+        write_atomic(target, (text[:i] + block + text[j:]).encode("utf-8"))
         print(f"{target}: trial table written from {args.ledger}")
         return 0
     except ValueError as exc:

@@ -127,6 +127,7 @@ def _localize_and_report(ds, model, cfg, out: Path, roi: str | None = None) -> N
     import dataclasses
 
     from supervisor.localization import offline
+    from supervisor.outputs import write_atomic
 
     settings = cfg.localization if roi is None else dataclasses.replace(cfg.localization, roi=roi)
     if model is None:
@@ -135,9 +136,9 @@ def _localize_and_report(ds, model, cfg, out: Path, roi: str | None = None) -> N
         print(f"built target model: {len(model.points_target)} features in {time.monotonic() - t0:.1f} s",
               file=sys.stderr)
     rows = offline.localize_dataset(ds, model, settings, offline.print_progress)
-    offline.write_atomic(out / "localization.csv", offline.artifacts_csv(rows))
-    offline.write_atomic(out / "localization.png",
-                         offline.plot_artifacts(rows, ds.kind, f"{ds.name}: n_i and error vs motion"))
+    write_atomic(out / "localization.csv", offline.artifacts_csv(rows))
+    write_atomic(out / "localization.png",
+                 offline.plot_artifacts(rows, ds.kind, f"{ds.name}: n_i and error vs motion"))
     print(offline.format_table(rows, ds.kind))
 
 
@@ -177,6 +178,7 @@ def cmd_evolution_fit_guided(args: argparse.Namespace) -> int:
 
     from supervisor.dataset.format import Dataset
     from supervisor.localization import offline
+    from supervisor.outputs import write_atomic
     from supervisor.localization.evolution import fit_guided, guided_samples
 
     cfg = _config(args)
@@ -199,7 +201,7 @@ def cmd_evolution_fit_guided(args: argparse.Namespace) -> int:
     gm = fit_guided(np.concatenate(xs), np.concatenate(es), args.b0, args.p_r)
     meta = dict(gm.meta, good_runs=n_good, runs=n_runs, datasets=[str(p) for p in args.datasets])
     out = Path(args.output)
-    offline.write_atomic(out, json.dumps(dict(gm.to_json(), meta=meta), indent=1).encode())
+    write_atomic(out, json.dumps(dict(gm.to_json(), meta=meta), indent=1).encode())
     print(f"wrote guided model {out}: b = {', '.join(f'{v:.2f}' for v in gm.b)} ({n_good} good runs of {n_runs})")
     return 0
 

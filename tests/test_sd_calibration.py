@@ -6,7 +6,8 @@ import math
 
 import pytest
 
-from supervisor.localization.offline import FrameArtifact, artifacts_csv, write_atomic
+from supervisor.localization.offline import FrameArtifact, artifacts_csv
+from supervisor.outputs import write_atomic
 from benchmark_module import load_benchmark
 
 

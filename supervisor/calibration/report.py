@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from supervisor.camera_model import Intrinsics
-from supervisor.localization.offline import write_atomic
+from supervisor.outputs import write_atomic
 
 
 def R_to_rpy(R: np.ndarray) -> tuple[float, float, float]:

@@ -18,6 +18,7 @@ from supervisor.errors import DatasetError
 from supervisor.localization import offline
 from supervisor.localization.offline import FrameArtifact
 from supervisor.localization.settings import LocalizerSettings
+from supervisor.outputs import write_atomic
 
 
 CACHE_FORMAT = 4  # v3: + iou8 (paper 2's metric); v4: + sd_mm, sd_deg (pose uncertainty). Bump when the CSV's columns change: older caches are recomputed
@@ -64,8 +65,8 @@ def localized(ds_root: Path, cache_dir: Path, settings: LocalizerSettings) -> li
         return read_artifacts(csv_path)
     model = offline.model_from_dataset(ds, settings)
     rows = offline.localize_dataset(ds, model, settings)
-    offline.write_atomic(csv_path, offline.artifacts_csv(rows))
-    offline.write_atomic(key_path, key.encode())
+    write_atomic(csv_path, offline.artifacts_csv(rows))
+    write_atomic(key_path, key.encode())
     # Return what a later cache hit will return (the CSV's rounding), so results never depend on
     # whether the cache was warm.
     return read_artifacts(csv_path)

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from supervisor.localization.offline import write_atomic
+from supervisor.outputs import write_atomic
 
 PAPER = {"static": 7.0, "long_range": 12.9, "next_step": 14.2}
 

@@ -46,7 +46,7 @@ from supervisor.config import Config, resolve_config
 from supervisor.errors import ConfigError, DatasetError
 from supervisor.evaluation.experiments import N_T, TOLERANCES, DatasetResult, evaluate_suite
 from supervisor.evaluation.metrics import INCURSION_EPS
-from supervisor.localization.offline import write_atomic
+from supervisor.outputs import write_atomic
 from supervisor.paths import DEFAULT_CONFIG
 from supervisor.prediction.errorbound import KAPPAS
 from supervisor.prediction.models import VARIANTS

@@ -11,9 +11,7 @@ import csv
 import dataclasses
 import io
 import math
-import os
 import sys
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -157,19 +155,6 @@ def guided_training_runs(ds: Dataset, model: TargetModel, settings: LocalizerSet
         if t_err <= tol_t and r_err <= tol_r:
             good.append(run)
     return good, total
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a temporary file in the same directory."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def artifacts_csv(rows: list[FrameArtifact]) -> bytes:
