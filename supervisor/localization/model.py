@@ -11,9 +11,8 @@ metadata blob; loading checks the format version and every array's shape.
 
 from __future__ import annotations
 
+import io
 import json
-import os
-import tempfile
 import time
 import zipfile
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ from supervisor.geometry import InvalidTransform, inv_T, make_T, validate_T
 from supervisor.localization.features import FeatureExtractor, mutual_matches
 from supervisor.localization.fiducial import BoardDetector, BoardSpec
 from supervisor.localization.settings import LocalizerSettings
+from supervisor.outputs import write_atomic
 
 FORMAT = "panda-supervisor-target-model"
 FORMAT_VERSION = 1
@@ -148,20 +148,12 @@ class TargetModel:
     def save(self, path: str | Path) -> Path:
         """Write the model atomically (temporary file in the same directory, then rename)."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, format_version=np.array(FORMAT_VERSION, np.int64),
-                         metadata=np.array(json.dumps(self.metadata(), sort_keys=True)),
-                         points_target=self.points_target, descriptors=self.descriptors,
-                         T_base_cam0=self.T_base_cam0, T_cam0_target=self.T_cam0_target)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        buf = io.BytesIO()
+        np.savez(buf, format_version=np.array(FORMAT_VERSION, np.int64),
+                 metadata=np.array(json.dumps(self.metadata(), sort_keys=True)),
+                 points_target=self.points_target, descriptors=self.descriptors,
+                 T_base_cam0=self.T_base_cam0, T_cam0_target=self.T_cam0_target)
+        write_atomic(path, buf.getvalue())
         return path
 
     @classmethod
