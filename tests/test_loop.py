@@ -212,7 +212,8 @@ def test_consistency_event_logs_the_steps_worst_frame_beside_its_mean(cfg, tmp_p
 
 def test_worst_frame_limit_stops_at_the_step_with_one_gross_frame_that_the_mean_lets_pass(cfg, tmp_path):
     """The same slip: the mean guard at 2 mm trips only at the step whose frames are both off (3 deg); the
-    worst-frame limit at 2 mm trips at the mixed step before it (1.5 deg), same latched halt, `on` says which."""
+    worst-frame limit at 2 mm trips at the mixed step before it (1.5 deg), at its shifted frame as it arrives, same
+    latched halt, `on` says which."""
     import json
 
     slip = lambda c: _Wrapped(c, after=3, mode="shift")  # noqa: E731
@@ -224,8 +225,40 @@ def test_worst_frame_limit_stops_at_the_step_with_one_gross_frame_that_the_mean_
     assert worst["max_overshoot_deg"] <= 1e-6 and worst["faults"] == []
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     trip = [e for e in events if e["kind"] == "consistency_guard"]
-    assert len(trip) == 1 and trip[0]["on"] == "worst_frame" and trip[0]["step"] == 1
+    assert len(trip) == 1 and trip[0]["on"] == "frame" and trip[0]["step"] == 1
     assert trip[0]["drift_mm"] > 2.0 and trip[0]["limit_mm"] == pytest.approx(2.0)
+    # the tripping frame's own localization event carries the drift the guard read
+    loc = [e for e in events if e["kind"] == "localization" and e["t"] == trip[0]["t"]]
+    assert [e["drift_mm"] for e in loc][-1] == pytest.approx(trip[0]["drift_mm"])
+    window = next(e for e in events if e["kind"] == "consistency" and e["step"] == 1)
+    assert trip[0]["t"] <= window["t"] and window["worst_drift_mm"] == pytest.approx(trip[0]["drift_mm"])
+
+
+def test_the_worst_frame_limit_brakes_a_continuous_arc_at_the_frame_before_the_steps_window_closes(cfg, tmp_path):
+    """While moving, the guard's worst-frame limit is read at every frame as it arrives: the camera slips on its
+    mount mid-arc, the first shifted frame trips the guard (event `on: frame`) within its step, before that step's
+    window closes, and the arm brakes from there (at 2 deg/s within 0.25 deg) without passing an allowance."""
+    import json
+
+    from supervisor.stages import PathLimits
+
+    slow = PathLimits(velocity=math.radians(2.0), acceleration=math.radians(20.0), jerk=math.radians(200.0))
+    moving = _stage(cfg, sampling="continuous", final_step="whole", margin=math.radians(1.5), limits=slow,
+                    consistency_t=0.0, consistency_r=0.0, worst_frame_t=0.002, worst_frame_r=math.radians(5.0))
+    # the slip mid-step (the arm cruising at 2 deg/s; near a step's end it is already braking into its horizon)
+    s = _run(cfg, moving, wrap_camera=lambda c: _Wrapped(c, after=34, mode="shift"), out=tmp_path)
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    trip = [e for e in events if e["kind"] == "consistency_guard"]
+    assert s["halt_reason"] == "consistency" and s["faults"] == [] and len(trip) == 1
+    assert trip[0]["on"] == "frame" and trip[0]["drift_mm"] > 2.0
+    loc = [e for e in events if e["kind"] == "localization"]
+    first_off = next(e for e in loc if e.get("drift_mm", 0.0) > 2.0)
+    assert trip[0]["t"] == first_off["t"] and all(e["drift_mm"] < 2.0 for e in loc if e["frame_t"] < first_off["frame_t"])
+    closed = [e for e in events if e["kind"] == "consistency" and e["step"] == trip[0]["step"]]
+    assert not closed or closed[0]["t"] > trip[0]["t"]  # the step's window closed later, if at all
+    assert trip[0]["s_deg"] < 1.5 * (trip[0]["step"] + 1)  # within the tripping frame's step
+    assert s["halt_angle_deg"] < min(trip[0]["s_deg"] + 0.25, 1.5 * (trip[0]["step"] + 1) - 0.1)
+    assert s["max_overshoot_deg"] <= 1e-6
 
 
 def test_inlier_ratio_gate_stops_at_the_step_whose_matches_turned_to_outliers(cfg, tmp_path):
@@ -273,7 +306,7 @@ def test_the_gate_read_at_every_frame_brakes_a_continuous_arc_before_the_steps_w
 
     from supervisor.stages import PathLimits
 
-    # at 2 deg/s the arm brakes within 0.1 deg, so where the gate trips shows in where the arm halts
+    # at 2 deg/s the arm brakes within about 0.2 deg, so where the gate trips shows in where the arm halts
     slow = PathLimits(velocity=math.radians(2.0), acceleration=math.radians(20.0), jerk=math.radians(200.0))
     moving = _stage(cfg, sampling="continuous", final_step="whole", margin=math.radians(1.5), min_inlier_ratio=0.96,
                     limits=slow)

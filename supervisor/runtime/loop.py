@@ -17,7 +17,8 @@ Per tick:
    the consistency guard compares the step's target poses, carried into the base
    frame by the robot's kinematics, with the model-time target pose: the target
    does not move, so a drift beyond the stage's limit means localization is failing
-   now, whatever n_i says -> no further motion (latched);
+   now, whatever n_i says -> no further motion (latched); its worst-frame limit is also read at every frame
+   as it arrives, and a trip there takes effect at once;
 4. the gate decides from Ruckig's braking profile whether this is the last tick
    at which a stop still ends at or before `theta_allowed`;
 5. the path follower advances (or brakes) and the robot gets one joint command.
@@ -103,6 +104,15 @@ class Sample:
     sd_t: float = math.nan  # the pose's 1-sigma spread at the target (m; nan: not localized)
     sd_r: float = math.nan  # rad
     n_matches: int = 0  # descriptor matches RANSAC chose the inliers from
+    # the target pose's drift from the model-time pose, carried into the base frame by the kinematics (m, rad; nan:
+    # not localized): what the consistency guard reads
+    drift_t: float = math.nan
+    drift_r: float = math.nan
+
+
+def _over(d_t: float, d_r: float, lim_t: float, lim_r: float) -> bool:
+    """Whether a drift (m, rad) passes a limit; a limit of 0 turns that quantity off."""
+    return (lim_t > 0 and d_t > lim_t) or (lim_r > 0 and d_r > lim_r)
 
 
 def overshoot(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
@@ -362,18 +372,24 @@ class SupervisorLoop:
             theta = viewing_angle(self.T_base_cam_model, job.T_base_cam)
             if res.ok:
                 self._last_ok = (job.T_base_cam, res.T_cam_target)
+            drift = (math.nan, math.nan)
+            if res.T_cam_target is not None:
+                drift = pose_error(job.T_base_cam @ res.T_cam_target, self.T_base_target_model, self.reference_point)
             s = Sample(job.t, job.step, theta, res.n_inliers, res.status.name, res.T_cam_target, job.meta,
                        job.T_base_cam, res.sd_t if res.ok else math.nan, res.sd_r if res.ok else math.nan,
-                       res.n_matches)
+                       res.n_matches, float(drift[0]), float(drift[1]))
             self.record.samples.append(s)
             self._step_samples.setdefault(job.step, []).append(s)
-            self._check_inlier_ratio_frames(now, s)
             self._awaiting[job.step] -= 1
             if self.observer is not None:
                 self._hook("observer.result", self.observer.result, jr)
             self.events.emit(now, "localization", step=job.step, frame_t=job.t, theta_deg=math.degrees(theta),
                              n_inliers=res.n_inliers, n_matches=res.n_matches, status=res.status.name,
-                             latency_ms=(jr.ready_t - job.t) * 1000)
+                             latency_ms=(jr.ready_t - job.t) * 1000,
+                             **({} if math.isnan(s.drift_t) else {"drift_mm": s.drift_t * 1000,
+                                                                  "drift_deg": math.degrees(s.drift_r)}))
+            self._check_inlier_ratio_frames(now, s)
+            self._check_worst_frame(now, s)
         self._emit_notes(now)
 
     def _emit_notes(self, now: float) -> None:
@@ -418,10 +434,10 @@ class SupervisorLoop:
         return True
 
     def _check_consistency(self, now: float, step: int, samples: list[Sample]) -> None:
-        """The consistency guard: trip (latched) when the step's mean target-pose drift exceeds the stage's
-        `consistency_limit_*`, or its worst frame's drift the `worst_frame_limit_*` (0: that reading off)."""
-        errs = [pose_error(s.T_base_cam @ s.T_cam_target, self.T_base_target_model, self.reference_point)
-                for s in samples if s.T_cam_target is not None and s.T_base_cam is not None]
+        """The consistency guard's step reading: trip (latched) when the step's mean target-pose drift exceeds the
+        stage's `consistency_limit_*` (0: off). Its worst-frame limit is read at every frame (`_check_worst_frame`),
+        so a step's worst frame has passed it by the time its window closes."""
+        errs = [(s.drift_t, s.drift_r) for s in samples if not math.isnan(s.drift_t)]
         if not errs:
             return  # nothing localized: n_i = 0 speaks for itself
         e_t = float(np.mean([e[0] for e in errs]))
@@ -432,17 +448,35 @@ class SupervisorLoop:
         self.events.emit(now, "consistency", step=step, drift_mm=e_t * 1000, drift_deg=math.degrees(e_r),
                          worst_drift_mm=w_t * 1000, worst_drift_deg=math.degrees(w_r), n_frames=len(errs))
         st = self.stage
-        readings = (("mean", e_t, e_r, st.consistency_t, st.consistency_r),
-                    ("worst_frame", w_t, w_r, st.worst_frame_t, st.worst_frame_r))
-        # a limit of 0 turns that quantity off; the mean is read first
-        tripped = next((r for r in readings if (r[3] > 0 and r[1] > r[3]) or (r[4] > 0 and r[2] > r[4])), None)
-        if tripped is not None and self._guard_stop is None:
-            # the same latched stop and halt reason, whichever reading tripped it (`on` says which)
-            self._guard_stop, self._guard_reason = self._stop_point(), "consistency"
-            on, d_t, d_r, lim_t, lim_r = tripped
-            self.events.emit(now, "consistency_guard", step=step, on=on, drift_mm=d_t * 1000,
-                             drift_deg=math.degrees(d_r), limit_mm=lim_t * 1000, limit_deg=math.degrees(lim_r),
-                             s_deg=math.degrees(self.follower.state.s))
+        if _over(e_t, e_r, st.consistency_t, st.consistency_r):
+            self._trip_guard(now, step, "mean", e_t, e_r, st.consistency_t, st.consistency_r)
+
+    def _check_worst_frame(self, now: float, s: Sample) -> None:
+        """The guard's worst-frame limit read at every localized frame as it arrives (event `on: frame`), not only
+        when its step's window closes: the same limit, tripped sooner (in continuous sampling a window spans a
+        step of arc the arm travels meanwhile). The latched stop takes effect at once."""
+        st = self.stage
+        if _over(s.drift_t, s.drift_r, st.worst_frame_t, st.worst_frame_r) and \
+                self._trip_guard(now, s.step, "frame", s.drift_t, s.drift_r, st.worst_frame_t, st.worst_frame_r):
+            self._latch_now(now)
+
+    def _trip_guard(self, now: float, step: int, on: str, d_t: float, d_r: float, lim_t: float, lim_r: float) -> bool:
+        """Latch the consistency guard's stop (the same latched stop and halt reason whichever reading tripped it;
+        `on` says which) unless a stop is latched already; True if it tripped now."""
+        if self._guard_stop is not None:
+            return False
+        self._guard_stop, self._guard_reason = self._stop_point(), "consistency"
+        self.events.emit(now, "consistency_guard", step=step, on=on, drift_mm=d_t * 1000,
+                         drift_deg=math.degrees(d_r), limit_mm=lim_t * 1000, limit_deg=math.degrees(lim_r),
+                         s_deg=math.degrees(self.follower.state.s))
+        return True
+
+    def _latch_now(self, now: float) -> None:
+        """A stop latched between two predictions takes effect now (every later prediction keeps it)."""
+        if self._guard_stop < self._theta_allowed:
+            self._theta_allowed = self._guard_stop
+            self._record_allowance(now, self._guard_stop)
+        self._allow_next = False
 
     def _check_inlier_ratio(self, now: float, step: int, samples: list[Sample]) -> None:
         """The inlier-ratio gate: trip (latched, like the guard) when the step's mean n_inliers / n_matches
@@ -467,11 +501,7 @@ class SupervisorLoop:
         if len(self._recent_ratios) < window:
             return
         if self._trip_inlier_ratio(now, s.step, float(np.mean(self._recent_ratios)), "frames", window):
-            # between two predictions: the latched stop takes effect now (every later prediction keeps it)
-            if self._guard_stop < self._theta_allowed:
-                self._theta_allowed = self._guard_stop
-                self._record_allowance(now, self._guard_stop)
-            self._allow_next = False
+            self._latch_now(now)
 
     def _trip_inlier_ratio(self, now: float, step: int, ratio: float, on: str, n_frames: int) -> bool:
         """Latch the gate's stop (like the guard's) when `ratio`, read `on` a step or the last frames, is below the

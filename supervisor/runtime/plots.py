@@ -1,5 +1,5 @@
 """Dry-run timeline plot: path angle over time with predictions and brakes; n_i vs angle with fits;
-the consistency guard's target-pose drift vs angle beside the ground-truth error."""
+the consistency guard's target-pose drift vs angle (step means and every frame) beside the ground-truth error."""
 
 from __future__ import annotations
 
@@ -72,6 +72,10 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
     if drift:
         d = np.array(drift)
         ax3.plot(d[:, 0], d[:, 1], "o-", ms=3, color="tab:blue", label="target-pose drift (run, step mean)")
+    frames = [(math.degrees(smp.theta), smp.drift_t * 1000) for smp in record.samples if math.isfinite(smp.drift_t)]
+    if frames:
+        f = np.array(frames)
+        ax3.plot(f[:, 0], f[:, 1], ".", ms=2, color="tab:cyan", alpha=0.6, label="target-pose drift (run, each frame)")
     if oracle is not None:
         te = np.array(oracle["t_err"], float) * 1000
         for mask, marker, label in o_groups:
@@ -81,7 +85,10 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
                          mfc="none" if marker == "D" else None, label=f"true translation error ({label}, mean)")
     limit = summary.get("consistency_limit_mm")
     if limit:
-        ax3.axhline(limit, color="tab:red", ls="--", lw=0.8, label="guard limit")
+        ax3.axhline(limit, color="tab:red", ls="--", lw=0.8, label="guard limit (step mean)")
+    frame_limit = summary.get("worst_frame_limit_mm")
+    if frame_limit:
+        ax3.axhline(frame_limit, color="tab:red", ls=":", lw=0.8, label="guard limit (each frame)")
     ax3.set_xlabel("viewing angle theta [deg]")
     ax3.set_ylabel("translation [mm]")
     ax3.set_ylim(0, max(6.0, 1.2 * (limit or 0)))
