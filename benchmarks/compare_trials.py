@@ -3,9 +3,9 @@
 Run both with `benchmarks/dryrun_trials.py --fixed-latency-ms MS` on the same `--seed`: each run is then
 bit-reproducible, and an arc can only halt differently where the setting acted. This reads each trial's
 `summary.json` (so a run still going is compared on the arcs both have finished) and `events.jsonl` (the
-consistency guard's trips, with the reading that tripped it: `mean` or `worst_frame`), and reports per run
-the incursions (refined and coarse judge), the mean envelope usage, the halt reasons, the largest overshoot
-and the faults; then every arc whose halt differs, with the guard trips of both runs and the stage settings
+consistency guard's trips, with the reading that tripped it: `mean`, or `frame` for the worst-frame limit read at
+every frame, `worst_frame` in runs before session 29), and reports per run the incursions (refined and coarse
+judge), the mean envelope usage, the halt reasons, the largest overshoot and the faults; then every arc whose halt differs, with the guard trips of both runs and the stage settings
 the two trials differ in beyond the guard's limits (`SETTINGS`, from each summary). An arc is explained by
 such a setting, or else by its guard trips differing between the runs. One that differs with the same trips
 in both runs and no other setting changed is flagged: at a fixed latency the two runs are then not

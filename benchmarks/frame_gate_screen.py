@@ -7,13 +7,17 @@ then comes to rest where braking from there ends (the stage's path limits, Rucki
 at its speed there, taken from the frames' angles. The arm never goes further than the run went. Each screened
 halt is judged against the run's own boundary.
 
+`--velocity-deg-s V` screens as if the stage's path velocity limit were V instead (lower than the runs'): at a trip
+the arm's speed is at most V and it brakes under that limit. Approximate: the frames are the runs' own, and at a
+lower speed the same arc would hold more of them, so a window of W frames would span fewer degrees.
+
 A screen, not a recomputation: after an earlier trip the run would have gone otherwise (fewer frames, another
 final model for the oracle), and the arm's speed is read from the frames. A setting it favours is to be chosen by
 leave-one-scene-out (`--loso`, as in posthoc_trials.py) and then tried live against the shipped stage on a fresh
 seed (dryrun_trials.py --fixed-latency-ms, compare_trials.py).
 
     python benchmarks/frame_gate_screen.py RUN... [--windows off,5,8,12] [--limits 0.28,0.24] [--loso]
-        [--config CONFIG] [--stage explore_continuous] [-o OUT]
+        [--config CONFIG] [--stage explore_continuous] [--velocity-deg-s V] [-o OUT]
 
 Stop-and-go trials in a run are left out (the arm stands while a step's frames are read). Reports, never passes or
 fails (exit 0; 2 on an unreadable run or bad arguments).
@@ -22,6 +26,7 @@ fails (exit 0; 2 on an unreadable run or bad arguments).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -77,6 +82,7 @@ def screened_halt(loc: list[dict], gate: FrameGate, braking: BrakingModel, run_h
         back = loc[max(k - SPEED_FRAMES, 0)]
         dt = float(e["frame_t"]) - float(back["frame_t"])
         speed = max(math.radians(float(e["theta_deg"]) - float(back["theta_deg"])) / dt, 0.0) if dt > 0 else 0.0
+        speed = min(speed, braking.limits.velocity)  # a screen at a lower velocity limit than the run's
         latency = float(e["t"]) - float(e["frame_t"])
         s = math.radians(float(e["theta_deg"])) + speed * latency  # where the arm is when the result arrives
         peak, _ = braking.furthest(PathState(s, speed))
@@ -133,12 +139,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limits", default="0.28", help="the gate's limits, comma-separated")
     ap.add_argument("--config", default=None, help="configuration YAML the runs used (default: the embedded one)")
     ap.add_argument("--stage", default="explore_continuous", help="the stage whose path limits the arm brakes under")
+    ap.add_argument("--velocity-deg-s", type=float, default=None,
+                    help="screen at this path velocity limit instead of the stage's (lower; approximate)")
     ap.add_argument("--loso", action="store_true", help="choose by leave-one-scene-out over every run's arcs")
     ap.add_argument("-o", "--out", type=Path, help="also write the report as JSON")
     a = ap.parse_args(argv)
     try:
         gates = _gates(a.windows, a.limits)
         limits = load_config(a.config).stage(a.stage).limits
+        if a.velocity_deg_s is not None:
+            v = math.radians(a.velocity_deg_s)
+            if not 0.0 < v <= limits.velocity:
+                raise ValueError(f"--velocity-deg-s: above 0 and at most the stage's "
+                                 f"{math.degrees(limits.velocity):g} deg/s, got {a.velocity_deg_s:g}")
+            limits = dataclasses.replace(limits, velocity=v)
         table: dict[FrameGate, list[dict]] = {g: [] for g in gates}
         report: dict = {"runs": {}}
         for run in a.runs:

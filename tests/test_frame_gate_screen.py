@@ -94,3 +94,24 @@ def test_the_path_limits_come_from_the_stage_of_the_config_the_runs_used(tmp_pat
     assert mod.main([str(run), "--windows", "4", "--stage", "cut"]) == 0  # cut brakes under its own limits
     assert mod.main([str(run), "--stage", "nonesuch"]) == 2
     assert "unknown stage 'nonesuch'" in capsys.readouterr().err
+
+
+def test_a_lower_velocity_limit_screens_a_slower_arm_that_brakes_sooner(tmp_path, capsys):
+    """At 4 deg/s recorded, a screen at 2 deg/s takes the arm at 2 deg/s when the result arrives and brakes it under
+    that limit: it rests sooner after the same tripping frame. A limit above the stage's is refused."""
+    mod = _load()
+    run = tmp_path / "run"
+    _trial(run, "cliff_az000_continuous", 9.0, 8.0, [0.9] * 50 + [0.2] * 20, speed_deg_s=4.0)
+    gate = mod.FrameGate(4, 0.28)
+    fast = mod.screen(run, [gate], LIMITS)[gate][0]
+    slow_limits = PathLimits(math.radians(2.0), LIMITS.acceleration, LIMITS.jerk)
+    slow = mod.screen(run, [gate], slow_limits)[gate][0]
+    assert slow["tripped_at_deg"] == fast["tripped_at_deg"]
+    s = math.radians(slow["tripped_at_deg"] + 2.0 * 0.12)
+    peak, _ = BrakingModel(slow_limits).furthest(PathState(s, math.radians(2.0)))
+    assert slow["halt_deg"] == pytest.approx(math.degrees(peak), abs=1e-6)
+    assert slow["halt_deg"] < fast["halt_deg"]
+    out = tmp_path / "rep.json"
+    assert mod.main([str(run), "--windows", "4", "--velocity-deg-s", "2", "-o", str(out)]) == 0
+    assert mod.main([str(run), "--velocity-deg-s", "50"]) == 2
+    assert "--velocity-deg-s" in capsys.readouterr().err
