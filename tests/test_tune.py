@@ -286,3 +286,30 @@ def test_the_stage_yaml_of_a_configuration_that_extends_another_carries_the_inhe
     cell.write_text(cell.read_text() + "    n_t: 12\n")  # edited while the tuner ran: nothing is written
     with pytest.raises(ConfigError, match="changed while tuning"):
         stage_yaml(cfg, "explore", r["_final"], "4mm_10deg", {**r, "stage": "explore"})
+
+
+def test_the_gates_per_frame_reading_in_the_chain_is_kept_under_a_tuned_gate_and_dropped_without_one(tmp_path):
+    """A cell's stage that re-reads the gate at every frame (`inlier_ratio_frames`, not replayed by the tuner): the
+    tuned stage keeps it when the tuner keeps a gate, and drops it when the tuner turns the gate off (the key alone
+    would be refused), saying so in the YAML's head."""
+    from supervisor.config import load_config
+    from supervisor.stages import load_stages
+
+    cell = tmp_path / "cell.yaml"
+    cell.write_text("extends: default\nstages:\n  explore:\n    inlier_ratio_frames: 3\n")
+    cfg = load_config(cell)
+    cliff = replace(_arc("c", 0, 22, 0.2), inlier_ratio=[0.5] * 8 + [0.22] * 13)
+    arcs = [replace(_arc("a", 0, 20, 0.5), inlier_ratio=[0.5] * 21),
+            replace(_arc("b", 0, 30, 0.5), inlier_ratio=[0.5] * 21), cliff]
+    gated = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
+                           inlier_ratio=True)
+    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
+    assert gated["_final"].min_ratio > 0 and plain["_final"].min_ratio == 0.0
+    text = stage_yaml(cfg, "explore", gated["_final"], "4mm_10deg", {**gated, "stage": "explore"})
+    st = load_stages(_written(tmp_path, text))["explore"]
+    assert st.inlier_ratio_frames == 3 and st.min_inlier_ratio == gated["_final"].min_ratio
+    assert "inlier_ratio_frames 3 kept" in text
+    text = stage_yaml(cfg, "explore", plain["_final"], "4mm_10deg", {**plain, "stage": "explore"})
+    st = load_stages(_written(tmp_path, text))["explore"]
+    assert st.inlier_ratio_frames == 0 and st.min_inlier_ratio == 0.0
+    assert "inlier_ratio_frames 3 dropped" in text

@@ -314,8 +314,13 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
     if op.kappa is not None:
         node["error_kappa"] = op.kappa  # the error-aware boundary, against the tolerance above
     node.pop("min_inlier_ratio", None)
+    # the gate's per-frame reading: the tuner does not replay it (it reads the gate per recorded position). Kept from
+    # the chain under a tuned gate (it only trips sooner), dropped with the gate off (nothing left to re-read).
+    frames = node.pop("inlier_ratio_frames", 0)
     if op.min_ratio > 0:
         node["min_inlier_ratio"] = op.min_ratio  # the inlier-ratio gate
+        if frames:
+            node["inlier_ratio_frames"] = frames
     node.pop("worst_frame_limit_mm", None)
     node.pop("worst_frame_limit_deg", None)
     if op.worst > 0:  # the guard's worst-frame limit
@@ -327,6 +332,9 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
             f"{report['arcs']} arcs of {len(report['scenes'])} scenes{_recordings(report)}:\n"
             f"# cross-validated incursion rate {cv['incursion_rate']:.3f}, mean SPL {cv['mean_spl_deg']:.2f} deg"
             f"{_judge(report)}\n")
+    if frames:
+        head += (f"# inlier_ratio_frames {frames} " + ("kept from the configuration, not replayed by the tuner (it "
+                 "only stops sooner)\n" if op.min_ratio > 0 else "dropped: the tuned stage has no inlier-ratio gate\n"))
     return head + yaml.safe_dump(doc, sort_keys=False)
 
 
