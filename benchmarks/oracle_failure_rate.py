@@ -7,14 +7,19 @@ first failure is itself a random event: an arc halted where n_i is still well ab
 incursion because one position before its halt drew a bad frame. This reads every judged position of finished
 `dryrun_trials.py` runs (`oracle.csv`, the run's judged tolerance from `summary.json`) and reports the share that
 failed per band of the oracle's mean inlier count, with the exact one-sided 95% upper bound (Clopper-Pearson), and
-per scene above a given count, for each judged tolerance apart. A position rendered in several runs (the same seed, scene, azimuth and angle:
-settings compared on one seed) counts once, as its first run judged it.
+per scene above a given count, for each judged tolerance apart. An arc judged in several runs (the same seed, scene,
+azimuth and tolerance: settings compared on one seed) counts once, as its first run judged it.
+
+It also reports a clairvoyant stop rule that reads n_i alone: each arc halted at its last judged position before
+the first whose mean inlier count falls below X, knowing that count exactly, for each band edge X. Its incursions
+are failures at positions whose n_i was at least X: no rule on n_i's level foretells them without stopping earlier.
+It halts only on judged positions (2.25 deg apart, finer near the boundary), so its usage is an underestimate.
 
     python benchmarks/oracle_failure_rate.py RUN [RUN...] [--bands 6,8,10,12,14,16,20,25,35] [--scenes-from 12]
         [-o OUT_DIR]
 
-With -o: `failure_rate.json` and, per tolerance, `failure_rate_<tolerance>.png` (the rate per band with its bound). Reports, never passes or
-fails (exit 0; 2 on an unreadable run or bad arguments).
+With -o: `failure_rate.json` and, per tolerance, `failure_rate_<tolerance>.png` (the rate per band with its bound).
+Reports, never passes or fails (exit 0; 2 on an unreadable run or bad arguments).
 """
 
 from __future__ import annotations
@@ -44,12 +49,22 @@ class Position:
     tolerance: str  # the run's judged tolerance, e.g. 4mm_10deg
     n_mean: float  # the oracle's mean inlier count there (lost frames included)
     failed: bool
+    theta_deg: float = math.nan
 
 
-def positions(runs: list[Path]) -> list[Position]:
-    """Every judged position of the runs' finished trials, each (seed, scene, azimuth, angle) once."""
+@dataclass(frozen=True)
+class Arc:
+    scene: str
+    tolerance: str
+    boundary_deg: float  # the judge's boundary (refined)
+    positions: tuple[Position, ...]  # in order of angle
+
+
+def arcs(runs: list[Path]) -> list[Arc]:
+    """Every judged arc of the runs' finished trials, each (seed, scene, azimuth, tolerance) once, as its first run
+    judged it (settings compared on one seed render the same frames)."""
     seen: set[tuple] = set()
-    out: list[Position] = []
+    out: list[Arc] = []
     for run in runs:
         if not run.is_dir():
             raise ValueError(f"{run}: not a trial run directory")
@@ -63,18 +78,46 @@ def positions(runs: list[Path]) -> list[Position]:
                 if tol is None:
                     raise ValueError(f"judged_tolerance {summary['judged_tolerance']!r} is not like 4mm_10deg")
                 tol_mm, tol_deg = float(tol.group(1)), float(tol.group(2))
-                key = (summary.get("seed"), summary["scene"], float(summary["azimuth_deg"]))
+                key = (summary.get("seed"), summary["scene"], float(summary["azimuth_deg"]), tol.group(0))
+                if key in seen:
+                    continue
+                seen.add(key)
+                rows = []
                 with o.open(newline="") as f:
                     for row in csv.DictReader(f):
-                        theta = round(float(row["theta_deg"]), 6)
-                        if key + (theta,) in seen:
-                            continue
-                        seen.add(key + (theta,))
                         t, r = float(row["t_err_mm"]), float(row["r_err_deg"])
                         failed = not (math.isfinite(t) and math.isfinite(r)) or t > tol_mm or r > tol_deg
-                        out.append(Position(summary["scene"], tol.group(0), float(row["n_inliers_mean"]), failed))
+                        rows.append(Position(summary["scene"], tol.group(0), float(row["n_inliers_mean"]), failed,
+                                             float(row["theta_deg"])))
+                out.append(Arc(summary["scene"], tol.group(0), float(summary["actual_boundary_judged_deg"]),
+                               tuple(sorted(rows, key=lambda p: p.theta_deg))))
             except (OSError, KeyError, ValueError, json.JSONDecodeError) as exc:
                 raise ValueError(f"{d}: unreadable trial ({exc})") from exc
+    return out
+
+
+def positions(runs: list[Path]) -> list[Position]:
+    """Every judged position of the runs' arcs (each arc once)."""
+    return [p for a in arcs(runs) for p in a.positions]
+
+
+def clairvoyant(arcs_: list[Arc], thresholds: list[float]) -> list[dict]:
+    """A clairvoyant rule that reads n_i alone: per threshold X, every arc halted at its last judged position before
+    the first whose mean inlier count is below X (0 if the first is), judged against the arc's boundary. Its
+    incursions are failures at positions whose n_i was at least X."""
+    out = []
+    for x in thresholds:
+        halts = []
+        for a in arcs_:
+            halt = 0.0
+            for p in a.positions:
+                if p.n_mean < x:
+                    break
+                halt = p.theta_deg
+            halts.append((halt, a.boundary_deg))
+        use = [h / b for h, b in halts if b > 0]
+        out.append({"n_i_at_least": x, "arcs": len(halts), "incursions": sum(h > b + 1e-9 for h, b in halts),
+                    "mean_envelope_usage": sum(use) / len(use) if use else None})
     return out
 
 
@@ -142,7 +185,8 @@ def main(argv: list[str] | None = None) -> int:
         edges = [float(v) for v in a.bands.split(",")]
         if any(e <= 0 for e in edges) or edges != sorted(set(edges)):
             raise ValueError("--bands: increasing positive numbers")
-        rows = positions(a.runs)
+        judged = arcs(a.runs)
+        rows = [p for c in judged for p in c.positions]
         if not rows:
             raise ValueError("no judged position in the runs")
     except ValueError as exc:
@@ -150,16 +194,22 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     report: dict = {"runs": [str(r) for r in a.runs], "positions": len(rows), "scenes_from": a.scenes_from,
                     "tolerances": {}}
-    print(f"{len(rows)} judged positions in {len(a.runs)} runs")
+    print(f"{len(rows)} judged positions of {len(judged)} arcs in {len(a.runs)} runs")
     for tol in sorted({p.tolerance for p in rows}):
         mine = [p for p in rows if p.tolerance == tol]
         bands, scenes = by_band(mine, edges), by_scene(mine, a.scenes_from)
-        report["tolerances"][tol] = {"positions": len(mine), "bands": bands, "scenes": scenes}
+        frontier = clairvoyant([c for c in judged if c.tolerance == tol], edges)
+        report["tolerances"][tol] = {"positions": len(mine), "bands": bands, "scenes": scenes,
+                                     "clairvoyant_n_i_stop": frontier}
         print(f"judged at {tol}: {len(mine)} positions")
         for b in bands:
             if b["positions"]:
                 print(f"  mean n_i {_band(b)}: {b['positions']} positions, {b['failed']} failed "
                       f"({100 * b['rate']:.2f}%, <= {100 * b['upper_95']:.2f}% at 95%)")
+        print("  halted at the last position before mean n_i falls below X, knowing it exactly:")
+        for f in frontier:
+            print(f"    X = {f['n_i_at_least']:g}: {f['incursions']} incursions in {f['arcs']} arcs, usage "
+                  f"{100 * f['mean_envelope_usage']:.1f}%")
         print(f"  per scene, positions with mean n_i >= {a.scenes_from:g}:")
         for s, v in sorted(scenes.items(), key=lambda kv: -(kv[1]["rate"] or 0.0)):
             if v["positions"]:
