@@ -14,7 +14,6 @@ Reports, never passes or fails.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import math
 import sys
@@ -27,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from supervisor.evaluation.cache import read_artifacts  # noqa: E402
 from supervisor.evaluation.experiments import TOLERANCES, _per_position  # noqa: E402
 from supervisor.evaluation.metrics import actual_boundary  # noqa: E402
-from supervisor.outputs import write_atomic  # noqa: E402
+from supervisor.outputs import write_atomic, write_figure  # noqa: E402
 
 
 def boundaries(cache: Path) -> dict[str, dict[str, float]]:
@@ -94,10 +93,8 @@ def main() -> int:
         ax.set_xlabel(f"boundary in {a.label_a} [deg]")
         ax.set_ylabel(f"boundary in {a.label_b} [deg]")
     fig.tight_layout()
-    png = io.BytesIO()
-    fig.savefig(png, format="png", dpi=110)
+    write_figure(a.out.with_suffix(".png"), fig)
     plt.close(fig)
-    write_atomic(a.out.with_suffix(".png"), png.getvalue())
     print(f"wrote {a.out.with_suffix('.json')}, {a.out.with_suffix('.png')}", file=sys.stderr)
     return 0
 

@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from trial_ledger import upper_bound  # noqa: E402
 
-from supervisor.outputs import write_atomic  # noqa: E402
+from supervisor.outputs import write_atomic, write_figure  # noqa: E402
 
 TOLERANCE = re.compile(r"^(\d+(?:\.\d+)?)mm_(\d+(?:\.\d+)?)deg$")
 
@@ -167,11 +167,8 @@ def plot(bands: list[dict], tolerance: str, path: Path) -> None:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=110)
+    write_figure(path, fig)
     plt.close(fig)
-    tmp.replace(path)
 
 
 def main(argv: list[str] | None = None) -> int:

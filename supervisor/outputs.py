@@ -17,6 +17,7 @@ frame is rendered or localized:
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import secrets
@@ -207,3 +208,10 @@ def write_atomic(path: Path, data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_figure(path: Path, fig, dpi: int = 110) -> None:
+    """A matplotlib figure as a PNG at `path`, written through `write_atomic` (the caller closes the figure)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    write_atomic(path, buf.getvalue())
