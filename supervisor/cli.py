@@ -178,8 +178,8 @@ def cmd_evolution_fit_guided(args: argparse.Namespace) -> int:
 
     from supervisor.dataset.format import Dataset
     from supervisor.localization import offline
-    from supervisor.outputs import write_atomic
     from supervisor.localization.evolution import fit_guided, guided_samples
+    from supervisor.outputs import write_atomic
 
     cfg = _config(args)
     xs, es, n_good, n_runs = [], [], 0, 0
