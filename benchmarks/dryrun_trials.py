@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from supervisor.dataset.benchmark import DEFAULT_SUITE, SUITES  # noqa: E402
 from supervisor.dryrun import ORACLE_FRAMES, ORACLE_REFINE, ORACLE_STEP, DryRunSpec  # noqa: E402
+from supervisor.outputs import write_figure  # noqa: E402
 from supervisor.processes import die_with_parent  # noqa: E402
 
 
@@ -109,7 +110,7 @@ def plot_trials(rows: list[dict], path: Path) -> Path:
         ax.set_ylabel("angle [deg]")
         ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(path, fig)
     plt.close(fig)
     return path
 

@@ -23,7 +23,6 @@ import os
 import secrets
 import shutil
 import sys
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -196,17 +195,35 @@ def prepare_incremental(path: str | Path, command: str, known: Iterable[str] = (
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a temporary file in the same directory, on disk before it is renamed."""
+    """Write `data` to `path` through a temporary file in the same directory, on disk before it is renamed.
+
+    The file gets the mode a plain `open(path, "w")` would give it: an existing file's own mode, a new
+    file the umask's (mkstemp's 0600 would make a rewritten README or a calibration private to whoever
+    wrote it last)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        keep = os.stat(path).st_mode & 0o7777
+    except FileNotFoundError:
+        keep = None
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the kernel applies the umask
+            break
+        except FileExistsError:
+            continue
+    else:
+        raise OutputError(path, "cannot create a temporary file beside it")
     try:
         with os.fdopen(fd, "wb") as fh:
+            if keep is not None:
+                os.fchmod(fh.fileno(), keep)
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
 
 

@@ -16,7 +16,7 @@ from supervisor.cli import main
 from supervisor.dataset.format import Dataset, DatasetWriter
 from supervisor.errors import OutputError
 from supervisor.geometry import make_T
-from supervisor.outputs import MARKER, StagedOutput, check_location, prepare_incremental
+from supervisor.outputs import MARKER, StagedOutput, check_location, prepare_incremental, write_atomic
 from test_dataset_format import _write
 
 
@@ -255,3 +255,22 @@ def test_output_directory_gets_the_umask_mode_not_0700(tmp_path):
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "run").stat().st_mode) == 0o755
+
+
+def test_write_atomic_gives_new_files_the_umask_mode_and_keeps_an_existing_files_mode(tmp_path):
+    """A rewritten README or calibration keeps who may read it; a new file gets what open() would give."""
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        write_atomic(tmp_path / "new.yaml", b"a: 1\n")
+        kept = tmp_path / "kept.csv"
+        kept.write_bytes(b"old\n")
+        kept.chmod(0o640)
+        write_atomic(kept, b"new\n")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "new.yaml").stat().st_mode) == 0o644
+    assert stat.S_IMODE(kept.stat().st_mode) == 0o640 and kept.read_bytes() == b"new\n"
+    assert listing(tmp_path) == ["kept.csv", "new.yaml"]  # no temporary left beside them

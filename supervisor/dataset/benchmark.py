@@ -43,7 +43,7 @@ from pathlib import Path
 from supervisor.config import Config, load_config
 from supervisor.dataset.generate import ArcSpec, LineSpec, generate_arc, generate_line
 from supervisor.errors import DatasetError, SupervisorError
-from supervisor.outputs import prepare_incremental
+from supervisor.outputs import prepare_incremental, write_atomic
 from supervisor.processes import die_with_parent
 
 SUITE_FILE = "suite.json"
@@ -123,9 +123,7 @@ def generate_suite(cfg: Config, out: str | Path, quick: bool = False, jobs: int 
         old = json.loads(mf.read_text(encoding="utf-8"))
         if old != manifest:
             raise DatasetError(mf, "an existing suite with other parameters is here; choose another directory")
-    tmp = mf.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(manifest, indent=1), encoding="utf-8")
-    os.replace(tmp, mf)
+    write_atomic(mf, json.dumps(manifest, indent=1).encode("utf-8"))
     todo = [i for i in items if not (out / i.name / "dataset.json").exists()]
     log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     log(f"benchmark suite: {len(items)} datasets ({len(items) - len(todo)} already complete) -> {out}")

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from supervisor.outputs import write_figure
 from supervisor.runtime.loop import RunRecord
 
 
@@ -95,9 +96,6 @@ def plot_timeline(record: RunRecord, oracle: dict[str, Any] | None, summary: dic
     ax3.legend(fontsize=7)
     ax3.grid(alpha=0.3)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=110)
+    write_figure(path, fig)
     plt.close(fig)
-    tmp.replace(path)
     return path
