@@ -3,8 +3,8 @@
 `supervisor tune` chooses a point by cross-validation; this asks the plainer question of a shipped or
 candidate point: on these recordings (`benchmark generate` suites, localized into `--cache`, e.g. an
 `evaluate` OUT/cache), which arcs would it pass, and what share of their envelope would it use? The stage's
-variant, `n_t`, guard (its mean and worst-frame limits, as fractions of the tolerance), inlier-ratio gate and
-last step come from the config; `--kappas` lists the error bound's kappas to replay beside the stage's own
+variant, `n_t`, guard (its mean and worst-frame limits, as fractions of the tolerance), inlier-ratio gate (with its
+reading over the last frames, `inlier_ratio_frames`, across the recorded frames) and last step come from the config; `--kappas` lists the error bound's kappas to replay beside the stage's own
 ("off": none). Both readings of the boundary are reported (`--strict-boundary` in README, "Tuning a stage
 for a tolerance").
 
@@ -17,6 +17,7 @@ Reports, never passes or fails.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -49,16 +50,14 @@ def stage_point(cfg, stage: str, tolerance: str) -> tuple[OperatingPoint, float 
     guard = min(GUARD_FRACTIONS, key=lambda g: abs(g - guard))
     if st.min_inlier_ratio not in INLIER_RATIOS:
         raise ConfigError(where, f"stages.{stage}.min_inlier_ratio", f"expected one of {INLIER_RATIOS}")
-    if st.inlier_ratio_frames:
-        raise ConfigError(where, f"stages.{stage}.inlier_ratio_frames", "the replay reads the gate once per recorded "
-                          "position; a gate read at every frame is not replayed (trial it: dryrun_trials.py)")
     worsts = {st.worst_frame_t / tol_t, st.worst_frame_r / tol_r}
     worst = min(WORST_FRACTIONS, key=lambda w: abs(w - next(iter(worsts))))
     if len(worsts) != 1 or abs(worst - next(iter(worsts))) > 1e-9:
         raise ConfigError(where, f"stages.{stage}.worst_frame_limit_mm",
                           f"the worst-frame limit must be one of {WORST_FRACTIONS} x the tolerance in both quantities")
     final_margin = st.margin if st.final_step == "to_allowance" or st.sampling == "continuous" else None
-    point = OperatingPoint(st.variant, st.n_t, guard, st.error_kappa, st.min_inlier_ratio, worst)
+    point = OperatingPoint(st.variant, st.n_t, guard, st.error_kappa, st.min_inlier_ratio, worst,
+                           st.inlier_ratio_frames if st.min_inlier_ratio > 0 else 0)
     return point, final_margin, st.final_step_clearance
 
 
@@ -68,9 +67,9 @@ def replay(arcs, point: OperatingPoint, final_margin: float | None, hard_limit: 
     for strict in (False, True):
         g = Grid(arcs, "next_step", (point.variant,), tolerance, hard_limit, True, final_margin=final_margin,
                  inlier_ratio=True, strict_boundary=strict, worst_frame=point.worst > 0,
-                 final_clearance=final_clearance)
+                 final_clearance=final_clearance, ratio_frames=point.ratio_frames)
         for k in kappas:
-            i = g.points.index(OperatingPoint(point.variant, point.n_t, point.guard, k, point.min_ratio, point.worst))
+            i = g.points.index(dataclasses.replace(point, kappa=k))
             s, a = g.stops[i], g.actual
             passed = np.flatnonzero(s > a + INCURSION_EPS)
             rows.append({"judge": "strict" if strict else "default", "kappa": k, "incursions": len(passed),

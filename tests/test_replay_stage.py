@@ -36,10 +36,12 @@ def test_the_shipped_explore_point_is_read_from_the_config_and_an_off_grid_guard
     odd = dataclasses.replace(cfg, stages={**cfg.stages, "explore": uneven})
     with pytest.raises(ConfigError, match="worst_frame_limit_mm"):
         rs.stage_point(odd, "explore", "4mm_10deg")
-    # the gate read at every frame is not replayed (the recordings are read per position)
+    # the gate read at every frame is replayed with it (over the recorded frames); without a gate there is none
     frames = dataclasses.replace(cfg, stages={**cfg.stages, "explore": dataclasses.replace(st, inlier_ratio_frames=5)})
-    with pytest.raises(ConfigError, match="inlier_ratio_frames"):
-        rs.stage_point(frames, "explore", "4mm_10deg")
+    point, *_ = rs.stage_point(frames, "explore", "4mm_10deg")
+    assert point.ratio_frames == 5 and point.min_ratio == st.min_inlier_ratio > 0
+    cont, *_ = rs.stage_point(cfg, "explore_continuous", "4mm_10deg")  # refused before session 30
+    assert cont.ratio_frames == cfg.stage("explore_continuous").inlier_ratio_frames == 3
 
 
 def test_kappa_changes_which_arcs_are_passed_and_both_judges_are_reported():
@@ -59,3 +61,22 @@ def test_kappa_changes_which_arcs_are_passed_and_both_judges_are_reported():
     assert 0.0 < by["default", 1.0]["usage"] < by["default", None]["usage"] <= 1.0
     # read strictly, b's boundary is at 12 deg, before the error bound's stop at 13.5 deg
     assert [p["arc"] for p in by["strict", 1.0]["passed"]] == ["arc_a_az000", "arc_b_az000"]
+
+
+def test_the_gates_reading_over_the_last_frames_is_replayed():
+    """explore_continuous reads the gate over its last 3 frames: the replay stops an arc where 3 poor frames span
+    two positions whose means stay above the limit, and does not without that reading."""
+    rs = _load()
+    even = [[0.5, 0.5, 0.5]] * 21
+    dip = [[0.5, 0.5, 0.5]] * 8 + [[0.5, 0.5, 0.2], [0.2, 0.2, 0.5, 0.5]] + [[0.5, 0.5, 0.5]] * 11
+    arcs = [dataclasses.replace(_arc("a", 0, 30, 0.5), inlier_ratio=[0.5] * 21, frame_ratios=even),
+            dataclasses.replace(_arc("b", 0, 22, 0.5), inlier_ratio=[float(sum(f) / len(f)) for f in dip],
+                                frame_ratios=dip)]
+    arcs = [dataclasses.replace(r, actual_last_good=dict(r.actual)) for r in arcs]
+    by_frames = {}
+    for frames in (0, 3):
+        point = OperatingPoint("logfit_lcb", 14, 0.0, None, 0.28, 0.0, frames)
+        rows = rs.replay(arcs, point, None, math.radians(45.0), "4mm_10deg", [None])
+        by_frames[frames] = next(r for r in rows if r["judge"] == "default")
+    assert [p["arc"] for p in by_frames[0]["passed"]] == ["arc_a_az000", "arc_b_az000"]  # n_t 14: 10 deg late
+    assert [p["arc"] for p in by_frames[3]["passed"]] == ["arc_a_az000"]  # b stopped at 20.25 deg, before 22

@@ -288,27 +288,51 @@ def test_the_stage_yaml_of_a_configuration_that_extends_another_carries_the_inhe
         stage_yaml(cfg, "explore", r["_final"], "4mm_10deg", {**r, "stage": "explore"})
 
 
-def test_the_gates_per_frame_reading_in_the_chain_is_kept_under_a_tuned_gate_and_dropped_without_one(tmp_path):
-    """A cell's stage that re-reads the gate at every frame (`inlier_ratio_frames`, not replayed by the tuner): the
-    tuned stage keeps it when the tuner keeps a gate, and drops it when the tuner turns the gate off (the key alone
-    would be refused), saying so in the YAML's head."""
+def test_the_gates_per_frame_reading_is_replayed_across_positions():
+    """The loop reads the gate over its last N localized frames at every frame, whatever position they belong to:
+    two poor frames at the end of one position and one at the start of the next trip it where neither position's
+    mean does (the replay of `inlier_ratio_frames`, DatasetResult.ratio_stop_at)."""
+    frames = [[0.5, 0.5, 0.5]] * 8 + [[0.5, 0.5, 0.2], [0.2, 0.2, 0.5, 0.5]] + [[0.5, 0.5, 0.5]] * 11
+    arc = replace(_arc("c", 0, 22, 0.2), inlier_ratio=[float(np.mean(f)) for f in frames], frame_ratios=frames)
+    assert arc.ratio_stop_at(0.28) == math.inf  # the positions' means: 0.4 and 0.35
+    assert arc.ratio_stop_at(0.28, frames=3) == pytest.approx(POS[9])  # 0.2, 0.2, 0.2 across positions 8 and 9
+    assert arc.ratio_stop_at(0.28, frames=4) == pytest.approx(POS[9])  # 0.5, 0.2, 0.2, 0.2: 0.275
+    assert arc.ratio_stop_at(0.28, frames=5) == math.inf  # 0.5, 0.5, 0.2, 0.2, 0.2: 0.32
+    assert arc.ratio_stop_at(0.0, frames=3) == math.inf  # the gate off
+    # a window longer than all frames seen so far does not read (the loop waits for N localized frames)
+    assert replace(arc, frame_ratios=[[0.1]] + frames[1:]).ratio_stop_at(0.28, frames=3) == pytest.approx(POS[9])
+
+
+def test_the_gates_per_frame_reading_in_the_chain_is_replayed_kept_under_a_tuned_gate_and_dropped_without_one(
+        tmp_path):
+    """A cell's stage that re-reads the gate at every frame (`inlier_ratio_frames`): the tuner replays that window
+    with every gate limit; the tuned stage keeps it when the tuner keeps a gate, and drops it when the tuner turns
+    the gate off (the key alone would be refused), saying so in the YAML's head."""
     from supervisor.config import load_config
     from supervisor.stages import load_stages
 
     cell = tmp_path / "cell.yaml"
     cell.write_text("extends: default\nstages:\n  explore:\n    inlier_ratio_frames: 3\n")
     cfg = load_config(cell)
-    cliff = replace(_arc("c", 0, 22, 0.2), inlier_ratio=[0.5] * 8 + [0.22] * 13)
-    arcs = [replace(_arc("a", 0, 20, 0.5), inlier_ratio=[0.5] * 21),
-            replace(_arc("b", 0, 30, 0.5), inlier_ratio=[0.5] * 21), cliff]
-    gated = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False,
-                           inlier_ratio=True)
-    plain = cross_validate(arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0), robust=False)
-    assert gated["_final"].min_ratio > 0 and plain["_final"].min_ratio == 0.0
+    even = [[0.5, 0.5, 0.5]] * 21
+    # c needs n_t >= 54 by n_i alone; its positions' ratios stay at 0.4 and 0.35, only 3 frames across 8 and 9 dip
+    dip = [[0.5, 0.5, 0.5]] * 8 + [[0.5, 0.5, 0.2], [0.2, 0.2, 0.5, 0.5]] + [[0.5, 0.5, 0.5]] * 11
+    cliff = replace(_arc("c", 0, 22, 0.2), inlier_ratio=[float(np.mean(f)) for f in dip], frame_ratios=dip)
+    arcs = [replace(_arc("a", 0, 20, 0.5), inlier_ratio=[0.5] * 21, frame_ratios=even),
+            replace(_arc("b", 0, 30, 0.5), inlier_ratio=[0.5] * 21, frame_ratios=even), cliff]
+    args = (arcs, "next_step", ("logfit_lcb",), "4mm_10deg", math.radians(45.0))
+    per_step = cross_validate(*args, robust=False, inlier_ratio=True)
+    gated = cross_validate(*args, robust=False, inlier_ratio=True, ratio_frames=3)
+    plain = cross_validate(*args, robust=False)
+    assert per_step["_final"].n_t == 54  # read per position the gate never sees c's dip
+    assert gated["_final"].min_ratio > 0 and gated["_final"].ratio_frames == 3 and gated["_final"].n_t < 54
+    assert gated["inlier_ratio_frames"] == 3 and "also over the last 3 frames" in gated["chosen_on_all_scenes"]
+    assert gated["cross_validated"]["mean_spl_deg"] > per_step["cross_validated"]["mean_spl_deg"]
+    assert plain["_final"].min_ratio == 0.0
     text = stage_yaml(cfg, "explore", gated["_final"], "4mm_10deg", {**gated, "stage": "explore"})
     st = load_stages(_written(tmp_path, text))["explore"]
     assert st.inlier_ratio_frames == 3 and st.min_inlier_ratio == gated["_final"].min_ratio
-    assert "inlier_ratio_frames 3 kept" in text
+    assert "inlier_ratio_frames 3 kept from the configuration and replayed" in text
     text = stage_yaml(cfg, "explore", plain["_final"], "4mm_10deg", {**plain, "stage": "explore"})
     st = load_stages(_written(tmp_path, text))["explore"]
     assert st.inlier_ratio_frames == 0 and st.min_inlier_ratio == 0.0

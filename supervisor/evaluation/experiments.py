@@ -27,6 +27,7 @@ import math
 import multiprocessing
 import sys
 import time
+from collections import deque
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -111,6 +112,9 @@ class DatasetResult:
     # per position: the worst localized frame's guard drift (m, rad; each the largest over the frames; nan
     # where none localized), what the loop's worst-frame limit reads after a step
     worst_drift: list[tuple[float, float]] = field(default_factory=list)
+    # per position: n_inliers / n_matches of each localized frame in capture order, what the loop's gate reads
+    # at every frame (`inlier_ratio_frames`) over the last frames, whatever position they belong to
+    frame_ratios: list[list[float]] = field(default_factory=list)
 
     def to_allowance_stops(self, system: str, margin: float, clearance: float = 0.0) -> list[float]:
         """`system`'s stop per n_t when the arm runs up to the allowance theta_p - margin (stop-and-go's
@@ -155,11 +159,19 @@ class DatasetResult:
                 return float(x)
         return math.inf
 
-    def ratio_stop_at(self, min_ratio: float) -> float:
-        """Where the inlier-ratio gate at `min_ratio` stops (inf: never; 0 = off)."""
+    def ratio_stop_at(self, min_ratio: float, frames: int = 0) -> float:
+        """Where the inlier-ratio gate at `min_ratio` stops (inf: never; 0 = off): on a position's mean ratio, or
+        with `frames` > 0 also where the mean over the last `frames` localized frames (across positions, as the
+        loop reads it at every frame once that many have localized) falls below it."""
         if min_ratio <= 0:
             return math.inf
-        for x, q in zip(self.positions, self.inlier_ratio):
+        recent: deque[float] = deque(maxlen=max(frames, 1))
+        for k, (x, q) in enumerate(zip(self.positions, self.inlier_ratio)):
+            if frames > 0:
+                for r in self.frame_ratios[k]:
+                    recent.append(r)
+                    if len(recent) == frames and float(np.mean(recent)) < min_ratio:
+                        return float(x)
             if q < min_ratio:  # nan (nothing localized) compares False
                 return float(x)
         return math.inf
@@ -286,6 +298,10 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
                     for nt in N_T]
     iou8_mean = _localized_means(rows, lambda r: r.iou8)
     inlier_ratio = _localized_means(rows, lambda r: r.n_inliers / r.n_matches if r.n_matches > 0 else math.nan)
+    frame_ratios: dict[int, list[float]] = {}
+    for r in sorted(rows, key=lambda r: (r.position, r.frame)):  # the loop's condition: localized, with matches
+        if r.status == "OK" and r.n_matches > 0:
+            frame_ratios.setdefault(r.position, []).append(r.n_inliers / r.n_matches)
     # The error-aware boundary: after each position (past the warm-up) the uncertainty trend one step ahead.
     step_si = float(np.median(np.diff(x)))
     err_margin: dict[str, list[float]] = {}
@@ -301,7 +317,8 @@ def evaluate_dataset(name: str, kind: str, rows: list, guard_fraction: float = G
         err_margin[tol] = ms
     return DatasetResult(name, kind, x_max, actual, stops, guard_stop, x.tolist(), [float(np.mean(n)) for n in nsamp],
                          scene, err_margin, [(float(a), float(b)) for a, b in zip(dt, dr)], iou8_mean, theta_p_path,
-                         k_lr - 1, step_si, inlier_ratio, actual_last_good, worst)
+                         k_lr - 1, step_si, inlier_ratio, actual_last_good, worst,
+                         [frame_ratios.get(p, []) for p in sorted({r.position for r in rows})])
 
 
 def _job(args: tuple[str, str, str | None]) -> DatasetResult:

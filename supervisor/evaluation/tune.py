@@ -66,11 +66,13 @@ class OperatingPoint:
     kappa: float | None  # error-aware boundary (None = off)
     min_ratio: float = 0.0  # the inlier-ratio gate (0 = off)
     worst: float = 0.0  # the guard's worst-frame limit, fraction of the tolerance (0 = off)
+    ratio_frames: int = 0  # the gate also read over the last this many frames at every frame (0 = per position only)
 
     def describe(self) -> str:
         g = "off" if self.guard == 0 else f"{self.guard:g} x tol"
         k = "" if self.kappa is None else f", kappa {self.kappa:g}"
         q = f", inlier ratio >= {self.min_ratio:g}" if self.min_ratio > 0 else ""
+        q += f" (also over the last {self.ratio_frames} frames)" if self.min_ratio > 0 and self.ratio_frames else ""
         w = f", worst frame {self.worst:g} x tol" if self.worst > 0 else ""
         return f"{self.variant}, n_t {self.n_t}, guard {g}{k}{q}{w}"
 
@@ -81,7 +83,9 @@ class Grid:
     def __init__(self, arcs: list[DatasetResult], predictor: str, variants: tuple[str, ...], tol: str,
                  hard_limit: float, error_aware: bool, final_margin: float | None = None,
                  inlier_ratio: bool = False, strict_boundary: bool = False, worst_frame: bool = False,
-                 final_clearance: float = 0.0) -> None:
+                 final_clearance: float = 0.0, ratio_frames: int = 0) -> None:
+        """`ratio_frames` > 0: every point with the gate on also reads it over that many last frames at every
+        frame (the stage's `inlier_ratio_frames`, replayed, not chosen)."""
         self.arcs = arcs
         # strict: a lost position's crossing at the position before it (DatasetResult.actual_last_good)
         self.actual = np.array([r.actual_last_good[tol] if strict_boundary else r.actual[tol] for r in arcs])
@@ -91,7 +95,7 @@ class Grid:
         guard = {g: np.array([r.guard_stop_at(g, tol) for r in arcs]) for g in GUARD_FRACTIONS}
         err = {k: np.array([r.error_stop(tol, k) if k is not None else math.inf for r in arcs]) for k in kappas}
         ratios = INLIER_RATIOS if inlier_ratio else (0.0,)
-        gate = {q: np.array([r.ratio_stop_at(q) for r in arcs]) for q in ratios}
+        gate = {q: np.array([r.ratio_stop_at(q, ratio_frames) for r in arcs]) for q in ratios}
         worsts = WORST_FRACTIONS if worst_frame else (0.0,)
         worst = {w: np.array([r.guard_stop_at(w, tol, worst_frame=True) for r in arcs]) for w in worsts}
         for v in variants:
@@ -107,7 +111,7 @@ class Grid:
                         for q in ratios:
                             stop = np.minimum(np.minimum(np.minimum(base[i], guard[g]), err[k]), gate[q])
                             for w in worsts:
-                                points.append(OperatingPoint(v, N_T[i], g, k, q, w))
+                                points.append(OperatingPoint(v, N_T[i], g, k, q, w, ratio_frames if q > 0 else 0))
                                 rows.append(np.minimum(stop, worst[w]))
         self.points = points
         self.stops = np.minimum(np.array(rows), hard_limit)
@@ -210,7 +214,7 @@ def tune(cfg: Config, bench_dir: str | Path | Sequence[str | Path], stage: str, 
     report = cross_validate(arcs, st.predictor, tuple(variants), tolerance, st.hard_limit, error_aware, progress,
                             final_margin=final_margin, inlier_ratio=inlier_ratio,
                             strict_boundary=strict_boundary, worst_frame=worst_frame,
-                            final_clearance=st.final_step_clearance)
+                            final_clearance=st.final_step_clearance, ratio_frames=st.inlier_ratio_frames)
     report["stage"] = stage
     report["suites"] = [str(b) for b in benches]
     final = report.pop("_final")
@@ -227,7 +231,7 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
                    hard_limit: float, error_aware: bool = False, progress=lambda m: None,
                    robust: bool = True, final_margin: float | None = None,
                    inlier_ratio: bool = False, strict_boundary: bool = False,
-                   worst_frame: bool = False, final_clearance: float = 0.0) -> dict[str, Any]:
+                   worst_frame: bool = False, final_clearance: float = 0.0, ratio_frames: int = 0) -> dict[str, Any]:
     """Leave-one-scene-out over `arcs` (evaluated datasets): per fold the choice and its held-out stops,
     the cross-validated totals, static's, and (key `_final`) the point chosen on all arcs.
 
@@ -241,12 +245,13 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     earliest it can be; a live judge that samples inside such a step finds cliffs early in it), not at the
     lost position itself; the report then also counts the held-out stops' incursions by the default judge.
     `worst_frame`: also choose the guard's worst-frame limit (WORST_FRACTIONS of the tolerance), which stops
-    at a position where any single frame drifts past it, however good the position's mean."""
+    at a position where any single frame drifts past it, however good the position's mean. `ratio_frames`: the
+    stage's `inlier_ratio_frames`, replayed with every gate limit (a window of frames across positions)."""
     scenes = sorted({r.scene or r.name for r in arcs})
     if len(scenes) < 2:
         raise DatasetError(Path("."), f"leave-one-scene-out needs arcs of at least 2 scenes, got {scenes}")
     grid = Grid(arcs, predictor, variants, tolerance, hard_limit, error_aware, final_margin, inlier_ratio,
-                strict_boundary, worst_frame, final_clearance)
+                strict_boundary, worst_frame, final_clearance, ratio_frames)
     scene_of = np.array([r.scene or r.name for r in arcs])
     deg = math.degrees(1.0)
     folds, held_stops, static_stops = [], np.full(len(arcs), np.nan), np.full(len(arcs), np.nan)
@@ -277,8 +282,8 @@ def cross_validate(arcs: list[DatasetResult], predictor: str, variants: tuple[st
     final, final_slack = grid.choose_robust(every, scene_of) if robust else (grid.choose(every), 0.0)
     return {
         "tolerance": tolerance, "predictor": predictor, "variants": list(variants), "error_aware": error_aware,
-        "inlier_ratio": inlier_ratio, "strict_boundary": strict_boundary, "worst_frame": worst_frame,
-        "final_step_margin_deg": None if final_margin is None else final_margin * deg,
+        "inlier_ratio": inlier_ratio, "inlier_ratio_frames": ratio_frames, "strict_boundary": strict_boundary,
+        "worst_frame": worst_frame, "final_step_margin_deg": None if final_margin is None else final_margin * deg,
         "final_step_clearance_deg": final_clearance * deg,
         "arcs": len(arcs), "scenes": scenes, "folds": folds,
         "cross_validated": cv, "cross_validated_static": cv_static,
@@ -314,13 +319,13 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
     if op.kappa is not None:
         node["error_kappa"] = op.kappa  # the error-aware boundary, against the tolerance above
     node.pop("min_inlier_ratio", None)
-    # the gate's per-frame reading: the tuner does not replay it (it reads the gate per recorded position). Kept from
-    # the chain under a tuned gate (it only trips sooner), dropped with the gate off (nothing left to re-read).
+    # the gate's per-frame reading: replayed with every gate limit (the chain's window, not chosen); kept under a
+    # tuned gate, dropped with the gate off (nothing left to re-read)
     frames = node.pop("inlier_ratio_frames", 0)
     if op.min_ratio > 0:
         node["min_inlier_ratio"] = op.min_ratio  # the inlier-ratio gate
-        if frames:
-            node["inlier_ratio_frames"] = frames
+        if op.ratio_frames:
+            node["inlier_ratio_frames"] = op.ratio_frames
     node.pop("worst_frame_limit_mm", None)
     node.pop("worst_frame_limit_deg", None)
     if op.worst > 0:  # the guard's worst-frame limit
@@ -332,9 +337,12 @@ def stage_yaml(cfg: Config, stage: str, op: OperatingPoint, tolerance: str, repo
             f"{report['arcs']} arcs of {len(report['scenes'])} scenes{_recordings(report)}:\n"
             f"# cross-validated incursion rate {cv['incursion_rate']:.3f}, mean SPL {cv['mean_spl_deg']:.2f} deg"
             f"{_judge(report)}\n")
-    if frames:
-        head += (f"# inlier_ratio_frames {frames} " + ("kept from the configuration, not replayed by the tuner (it "
-                 "only stops sooner)\n" if op.min_ratio > 0 else "dropped: the tuned stage has no inlier-ratio gate\n"))
+    if op.min_ratio > 0 and op.ratio_frames:
+        head += (f"# inlier_ratio_frames {op.ratio_frames} kept from the configuration and replayed with the gate "
+                 "(over the recorded frames, across positions)\n")
+    elif frames:
+        head += f"# inlier_ratio_frames {frames} dropped: " + ("the tuned stage has no inlier-ratio gate\n"
+                                                               if op.min_ratio <= 0 else "the tuning did not replay it\n")
     return head + yaml.safe_dump(doc, sort_keys=False)
 
 
