@@ -95,19 +95,65 @@ def test_model_build_into_existing_directory_is_a_clear_error(tmp_path, tiny, ca
     one_error(rc, err, str(tmp_path), "is a directory; give a file name")
 
 
-def test_unwritable_parent(tmp_path):
-    ro = tmp_path / "ro"
-    ro.mkdir()
-    ro.chmod(0o500)
-    try:
-        import os
+def _as_nobody(fn) -> int:
+    """Run `fn()` in a forked child as user and group 65534 (nobody), for tests that need an unprivileged user
+    while the suite runs as root; its exit status: 0 when `fn` returned, 1 when it raised (anything else: killed
+    after 30 s)."""
+    import os
+    import time
 
-        if os.access(ro, os.W_OK):
-            pytest.skip("running as a user who can write anywhere")
+    pid = os.fork()
+    if pid == 0:  # the child: drop privileges, run, report by exit status only
+        code = 1
+        try:
+            os.setgroups([])
+            os.setgid(65534)
+            os.setuid(65534)
+            fn()
+            code = 0
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return os.waitstatus_to_exitcode(status)
+        time.sleep(0.02)
+    os.kill(pid, 9)
+    os.waitpid(pid, 0)
+    return -9
+
+
+def test_unwritable_parent(tmp_path):
+    import os
+    import tempfile
+
+    def refused() -> None:
         with pytest.raises(OutputError, match="is not writable"):
             check_location(ro / "out", directory=True)
+
+    if os.geteuid() != 0:
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        try:
+            refused()
+        finally:
+            ro.chmod(0o700)
+        return
+    # root writes anywhere: the check runs as nobody, in a directory it may enter but not write (under /tmp, since
+    # pytest's own tmp_path is private to root)
+    top = Path(tempfile.mkdtemp(prefix="supervisor-ro-", dir="/tmp"))
+    try:
+        top.chmod(0o755)
+        ro = top / "ro"
+        ro.mkdir(mode=0o755)
+        assert _as_nobody(refused) == 0
+        assert _as_nobody(lambda: check_location(top / "elsewhere", directory=True)) == 1  # the child does fail
     finally:
-        ro.chmod(0o700)
+        import shutil
+
+        shutil.rmtree(top)
 
 
 def test_force_never_deletes_a_foreign_directory(tmp_path, capfd):
