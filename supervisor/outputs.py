@@ -202,7 +202,7 @@ def write_atomic(path: Path, data: bytes) -> None:
     wrote it last)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        keep = os.stat(path).st_mode & 0o7777
+        keep = os.stat(path).st_mode & 0o777  # not set-id or sticky bits
     except FileNotFoundError:
         keep = None
     for _ in range(100):
