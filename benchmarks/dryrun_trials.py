@@ -117,8 +117,9 @@ def plot_trials(rows: list[dict], path: Path) -> Path:
 
 def trial_totals(rows: list[dict]) -> dict:
     """The totals of a set of judged trials (their summary.json rows): incursions, overshoot, revision
-    shortfall, envelope usage, and the same trials by the oracle's coarse positions alone and by the strict
-    reading of a lost position (None when a trial was judged before it was recorded)."""
+    shortfall, envelope usage, and the same trials by the oracle's coarse positions alone, by the strict
+    reading of a lost position and by each position's median frame (None when a trial was judged before it was
+    recorded)."""
     inc = sum(s["incursion"] for s in rows)
     over = [s["max_overshoot_deg"] for s in rows if s["max_overshoot_deg"] is not None]
     usage = [s["envelope_usage"] for s in rows if s["envelope_usage"] is not None]
@@ -130,6 +131,9 @@ def trial_totals(rows: list[dict]) -> dict:
     # the strict reading of a lost position (see supervisor.dryrun.verdicts); unknown for trials judged before it
     strict = [s.get("strict_judge") for s in rows]
     s_usage = [x["envelope_usage"] for x in strict if x and x["envelope_usage"] is not None]
+    # by each position's median frame (supervisor.dryrun.verdicts); unknown for trials judged before it was recorded
+    major = [s.get("majority_judge") for s in rows]
+    m_usage = [x["envelope_usage"] for x in major if x and x["envelope_usage"] is not None]
     return {"trials": len(rows), "incursions": inc, "max_overshoot_deg": max(over) if over else None,
             "trials_with_overshoot": sum(o > 1e-6 for o in over),
             "trials_with_revision_shortfall": sum(s["revision_shortfall_deg"] > 1e-6 for s in rows),
@@ -141,7 +145,9 @@ def trial_totals(rows: list[dict]) -> dict:
             "coarse_judge": {"incursions": sum(c["incursion"] for c in coarse),
                              "mean_envelope_usage": sum(c_usage) / len(c_usage) if c_usage else None},
             "strict_judge": {"incursions": sum(x["incursion"] for x in strict) if all(strict) else None,
-                             "mean_envelope_usage": sum(s_usage) / len(s_usage) if all(strict) and s_usage else None}}
+                             "mean_envelope_usage": sum(s_usage) / len(s_usage) if all(strict) and s_usage else None},
+            "majority_judge": {"incursions": sum(x["incursion"] for x in major) if all(major) else None,
+                               "mean_envelope_usage": sum(m_usage) / len(m_usage) if all(major) and m_usage else None}}
 
 
 def main() -> int:
@@ -194,7 +200,9 @@ def main() -> int:
                   f"{s['halt_angle_deg']:.2f} deg, actual {s['actual_boundary_judged_deg']:.2f} ({s['judged_tolerance']}), "
                   f"{'INCURSION' if s['incursion'] else 'ok'}"
                   + (" (by the strict reading of a lost position: incursion)"
-                     if not s["incursion"] and (s.get("strict_judge") or {}).get("incursion") else ""),
+                     if not s["incursion"] and (s.get("strict_judge") or {}).get("incursion") else "")
+                  + (" (by the majority of the oracle's frames: safe)"
+                     if s["incursion"] and s.get("majority_judge", {"incursion": True})["incursion"] is False else ""),
                   file=sys.stderr, flush=True)
     print(f"{'scene':<18} {'az':>4} {'mode':<12} {'halt':>6} {'theta_p':>7} {'allowed':>7} {'actual':>7} "
           f"{'incur':>5} {'overshoot':>9} {'revision':>8} {'usage':>6}  reason")

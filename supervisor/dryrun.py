@@ -5,7 +5,7 @@ model images 2 cm apart, build the target model, return to the start view, then
 run one gated arc with the configured stage. Afterwards an *oracle sweep*
 (rendered frames along the full arc, localized with the same model, compared
 with ground truth) gives the actual envelope boundary the halt is judged
-against (`oracle.csv`: each position's mean errors). Outputs: `summary.json`, `events.jsonl`, `timeline.png`,
+against (`oracle.csv`: each position's mean errors, and its median frame's). Outputs: `summary.json`, `events.jsonl`, `timeline.png`,
 `oracle.csv`.
 """
 
@@ -35,6 +35,7 @@ from supervisor.localization.artifacts import viewing_angle
 from supervisor.localization.localizer import Localizer, predict_target_pose
 from supervisor.localization.model import BoxROI, TargetModel
 from supervisor.motion.paths import ArcPath, start_camera_pose
+from supervisor.outputs import write_atomic
 from supervisor.runtime.builder import Drivers, Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
 from supervisor.runtime.loop import RunRecord, executed_angles, overshoot
@@ -181,18 +182,17 @@ def _write_outputs(out: Path | None, summary: dict[str, Any], record: RunRecord,
     if out is None:
         return
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / ".summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2, sort_keys=True))
-    tmp.replace(out / "summary.json")
-    if oracle is not None:  # the judge's evidence: each position's mean errors (refined: a position sampled again)
+    write_atomic(out / "summary.json", json.dumps(summary, indent=2, sort_keys=True).encode())
+    if oracle is not None:  # the judge's evidence: each position's mean (and median) errors (refined: sampled again)
         refined = oracle.get("refined") or [False] * len(oracle["theta"])
-        rows = ["theta_deg,t_err_mm,r_err_deg,n_inliers_mean,refined"]
-        rows += [f"{math.degrees(th):.4f},{1000 * te:.4f},{math.degrees(re):.4f},{n:.2f},{int(f)}"
-                 for th, te, re, n, f in zip(oracle["theta"], oracle["t_err"], oracle["r_err"], oracle["n_mean"],
-                                             refined)]
-        tmp = out / ".oracle.csv.tmp"
-        tmp.write_text("\n".join(rows) + "\n")
-        tmp.replace(out / "oracle.csv")
+        count = len(oracle["theta"])
+        t_med, r_med = (oracle.get(k) or [math.nan] * count for k in ("t_err_median", "r_err_median"))
+        rows = ["theta_deg,t_err_mm,r_err_deg,n_inliers_mean,refined,t_err_median_mm,r_err_median_deg"]
+        rows += [f"{math.degrees(th):.4f},{1000 * te:.4f},{math.degrees(re):.4f},{n:.2f},{int(f)},"
+                 f"{1000 * tm:.4f},{math.degrees(rm):.4f}"
+                 for th, te, re, n, f, tm, rm in zip(oracle["theta"], oracle["t_err"], oracle["r_err"],
+                                                     oracle["n_mean"], refined, t_med, r_med)]
+        write_atomic(out / "oracle.csv", ("\n".join(rows) + "\n").encode())
     from supervisor.runtime.plots import plot_timeline
 
     plot_timeline(record, oracle, summary, out / "timeline.png")
@@ -312,7 +312,7 @@ def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, 
     first exceeded position again, `refine` times finer (refine_positions)."""
     loc = Localizer(model, cfg.localization)
 
-    def measure(s: float, first_frame: int) -> tuple[float, float, float, float]:
+    def measure(s: float, first_frame: int) -> tuple[float, float, float, float, float, float]:
         T = path.pose(s)
         te, re, ns = [], [], []
         for i in range(frames):
@@ -325,7 +325,8 @@ def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, 
                 e_t, e_r = math.inf, math.inf  # a failed localization exceeds every tolerance
             te.append(e_t)
             re.append(e_r)
-        return viewing_angle(T0, T), float(np.mean(te)), float(np.mean(re)), float(np.mean(ns))
+        return (viewing_angle(T0, T), float(np.mean(te)), float(np.mean(re)), float(np.mean(ns)),
+                float(np.median(te)), float(np.median(re)))
 
     coarse = oracle_positions(s_max, step)
     rows = [(float(s), *measure(s, 100_000 + k * frames), False) for k, s in enumerate(coarse)]
@@ -336,9 +337,9 @@ def _oracle(cfg: Config, renderer: Renderer, model: TargetModel, path: ArcPath, 
         j = round((s - coarse[k]) * refine / (coarse[k + 1] - coarse[k]))
         rows.append((s, *measure(s, 300_000 + (k * refine + j) * frames), True))
     rows.sort(key=lambda r: r[0])
-    _, thetas, t_errs, r_errs, n_mean, refined = (list(c) for c in zip(*rows))
+    _, thetas, t_errs, r_errs, n_mean, t_med, r_med, refined = (list(c) for c in zip(*rows))
     return {**_oracle_record(thetas, t_errs, r_errs, n_mean), "step": step, "frames": frames, "refine": refine,
-            "refined": refined}
+            "refined": refined, "t_err_median": t_med, "r_err_median": r_med}
 
 
 def _oracle_record(theta: list[float], t_err: list[float], r_err: list[float], n_mean: list[float]) -> dict[str, Any]:
@@ -361,7 +362,10 @@ def verdicts(oracle: dict[str, Any], tol_t: float, tol_r: float, halt: float, ma
     - `strict_judge`: where the first position beyond the tolerance lost a frame there is no error to interpolate
       toward, and the judge puts the boundary at that position (the latest the error can have crossed); the
       strict reading puts it at the position before (the earliest). A halt between the two is judged safe by the
-      one and an incursion by the other: the oracle's frames cannot tell which (a finer oracle may)."""
+      one and an incursion by the other: the oracle's frames cannot tell which (a finer oracle may);
+    - `majority_judge`, when the oracle recorded it: the same from each position's median frame error instead of the
+      mean, so a position fails when most of its frames do, not when one of them is lost or gross (the judge's own
+      noise: docs/tuning.md, session 29). A reading beside the judge, never instead of it."""
     theta, t_err, r_err = (np.asarray(oracle[k], float) for k in ("theta", "t_err", "r_err"))
     a, inc, usage = _verdict(theta, t_err, r_err, tol_t, tol_r, halt, max_exec)
     out: dict[str, Any] = {"actual_boundary_judged_deg": math.degrees(a), "incursion": inc, "envelope_usage": usage}
@@ -371,6 +375,10 @@ def verdicts(oracle: dict[str, Any], tol_t: float, tol_r: float, halt: float, ma
         out["coarse_judge"] = {"actual_boundary_deg": math.degrees(c), "incursion": c_inc, "envelope_usage": c_usage}
     s, s_inc, s_usage = _verdict(theta, t_err, r_err, tol_t, tol_r, halt, max_exec, lost="last_good")
     out["strict_judge"] = {"actual_boundary_deg": math.degrees(s), "incursion": s_inc, "envelope_usage": s_usage}
+    if oracle.get("t_err_median") is not None:
+        t_med, r_med = (np.asarray(oracle[k], float) for k in ("t_err_median", "r_err_median"))
+        m, m_inc, m_usage = _verdict(theta, t_med, r_med, tol_t, tol_r, halt, max_exec)
+        out["majority_judge"] = {"actual_boundary_deg": math.degrees(m), "incursion": m_inc, "envelope_usage": m_usage}
     return out
 
 

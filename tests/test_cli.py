@@ -486,6 +486,10 @@ def test_the_oracle_can_judge_at_a_finer_step_with_more_frames(tmp_path: Path) -
                              0.004, math.radians(10.0), lost="last_good")
     assert s["strict_judge"]["actual_boundary_deg"] == pytest.approx(math.degrees(strict), abs=1e-3)
     assert s["strict_judge"]["actual_boundary_deg"] <= s["actual_boundary_judged_deg"] + 1e-9
+    # and by each position's median frame (the majority reading), from the oracle's own columns
+    majority = actual_boundary(np.radians(rows["theta_deg"]), rows["t_err_median_mm"] / 1000,
+                               np.radians(rows["r_err_median_deg"]), 0.004, math.radians(10.0))
+    assert s["majority_judge"]["actual_boundary_deg"] == pytest.approx(math.degrees(majority), abs=1e-3)
     default = DryRunSpec(stage="explore", azimuth=0.0)
     assert math.degrees(default.oracle_step) == pytest.approx(2.25) and default.oracle_frames == 3
     assert default.oracle_refine == 3
@@ -514,6 +518,47 @@ def test_a_halt_on_a_position_that_lost_a_frame_is_safe_by_the_judge_and_an_incu
     # nothing refined: no coarse verdict beside the judge's (it would be the same)
     plain = {k: oracle[k] for k in ("theta", "t_err", "r_err")}
     assert "coarse_judge" not in verdicts(plain, 0.004, d(10.0), halt=d(16.0), max_exec=d(16.0))
+
+
+def test_the_majority_reading_fails_a_position_only_when_most_of_its_frames_fail():
+    import math
+
+    from supervisor.dryrun import verdicts
+
+    d = math.radians
+    # at 17.25 deg one frame of three is lost: the mean is inf (the judge fails the position), the median frame is
+    # 0.5 mm; at 19.5 two of three are lost: both fail it
+    oracle = {"theta": [d(15.75), d(16.5), d(17.25), d(18.0), d(18.75), d(19.5)],
+              "t_err": [1e-4, 3e-4, math.inf, 5e-4, 6e-4, math.inf],
+              "r_err": [d(0.1), d(0.2), math.inf, d(0.3), d(0.3), math.inf],
+              "t_err_median": [1e-4, 3e-4, 5e-4, 5e-4, 6e-4, math.inf],
+              "r_err_median": [d(0.1), d(0.2), d(0.3), d(0.3), d(0.3), math.inf]}
+    v = verdicts(oracle, 0.004, d(10.0), halt=d(18.0), max_exec=d(18.0))
+    assert v["actual_boundary_judged_deg"] == pytest.approx(17.25) and v["incursion"]  # the judge: unchanged
+    assert v["majority_judge"] == {"actual_boundary_deg": pytest.approx(19.5), "incursion": False,
+                                   "envelope_usage": pytest.approx(18.0 / 19.5)}
+    v = verdicts(oracle, 0.004, d(10.0), halt=d(19.6), max_exec=d(19.6))
+    assert v["incursion"] and v["majority_judge"]["incursion"]
+    # an oracle without medians (a replay's, or a run judged before they were recorded): no majority reading
+    assert "majority_judge" not in verdicts({k: oracle[k] for k in ("theta", "t_err", "r_err")}, 0.004, d(10.0),
+                                            halt=d(16.0), max_exec=d(16.0))
+
+
+def test_trial_totals_count_the_majority_reading_only_when_every_trial_recorded_it():
+    from benchmark_module import load_benchmark
+
+    totals = load_benchmark("dryrun_trials").trial_totals
+
+    def row(inc: bool, majority: dict | None) -> dict:
+        s = {"incursion": inc, "max_overshoot_deg": -1e-4, "envelope_usage": 0.9, "revision_shortfall_deg": 0.0,
+             "sampling": "stop_and_go", "strict_judge": {"incursion": inc, "envelope_usage": 0.9}}
+        return s if majority is None else {**s, "majority_judge": majority}
+
+    both = [row(True, {"incursion": False, "envelope_usage": 0.8}), row(False, {"incursion": False,
+                                                                                 "envelope_usage": 0.7})]
+    t = totals(both)
+    assert t["incursions"] == 1 and t["majority_judge"] == {"incursions": 0, "mean_envelope_usage": pytest.approx(0.75)}
+    assert totals([*both, row(False, None)])["majority_judge"] == {"incursions": None, "mean_envelope_usage": None}
 
 
 def test_dry_run_replay_of_a_recording_without_its_motion(dataset: Path, tmp_path: Path,
