@@ -17,7 +17,7 @@ from supervisor.localization.model import BoxROI
 from supervisor.motion.paths import start_camera_pose
 from supervisor.runtime.builder import Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
-from supervisor.runtime.loop import executed_angles, overshoot
+from supervisor.runtime.loop import executed_angles, overshoot, overshoot_at
 
 
 @pytest.fixture(scope="module")
@@ -161,6 +161,11 @@ def test_overshoot_bounds_each_tick_by_the_allowance_then_in_force():
     over, short = overshoot(t, s, [(0.0, 0.6, 0.0), (0.45, 0.3, 0.52)])
     assert over == pytest.approx(0.03) and short == pytest.approx(0.22)
     assert overshoot([], [], [(0.0, 0.6, 0.0)])[0] == -math.inf
+    # where: the tick at t=0.6 (s 0.55) against the bound 0.52 set at t=0.45
+    at = overshoot_at(t, s, [(0.0, 0.6, 0.0), (0.45, 0.3, 0.52)])
+    assert at["s"] - at["bound"] == pytest.approx(over) and at["bound_t"] == 0.45 and at["s"] == pytest.approx(0.55)
+    assert at["t"] == pytest.approx(0.6) and at["samples"] == len(t)
+    assert overshoot_at([], [], [(0.0, 0.6, 0.0)]) is None
 
 
 def test_repeated_frame_is_a_stale_frame_fault_and_stops(cfg):

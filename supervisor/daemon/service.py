@@ -37,7 +37,7 @@ from supervisor.localization.model import DepthROI, TargetModel
 from supervisor.runtime.builder import Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
 from supervisor.motion.plan import START_TOLERANCE
-from supervisor.runtime.loop import RunRecord, executed_angles, overshoot
+from supervisor.runtime.loop import RunRecord, executed_angles, overshoot, overshoot_at
 from supervisor.can.link import CanLink  # CAN side channel (issue 12)
 
 IDLE_PERIOD = 0.02  # s: the idle loop's period (freshness checks, watchdog, queued requests)
@@ -497,11 +497,16 @@ class Daemon:
         kin, T0 = self.drivers.kin, self.sup.T_base_cam_model
         executed = executed_angles(record, kin, T0)
         over, _ = overshoot(np.asarray(record.trajectory_t), executed, record.allowance_history)
+        at = overshoot_at(np.asarray(record.trajectory_t), executed, record.allowance_history)
         allowed = record.s_allowed_at_brake
         return {"halt_angle_deg": math.degrees(record.halt_s), "halt_reason": record.halt_reason,
                 "theta_allowed_deg": math.degrees(allowed) if math.isfinite(allowed) else None,
                 "max_executed_angle_deg": math.degrees(float(executed.max())) if len(executed) else 0.0,
                 "max_overshoot_deg": math.degrees(over) if math.isfinite(over) else None,
+                # the tick that came closest to (or past) its bound: which allowance, set when
+                "max_overshoot_at": None if at is None else {
+                    "t": at["t"], "s_deg": math.degrees(at["s"]), "bound_deg": math.degrees(at["bound"]),
+                    "bound_set_t": at["bound_t"], "sample": int(at["index"]), "samples": int(at["samples"])},
                 "stage": self.sup.stage.name, "config_sha256": self.cfg.sha256}
 
     def install_signals(self) -> None:

@@ -139,6 +139,23 @@ def overshoot(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
     return float(np.max(s - bound[k])), float(shortfall)
 
 
+def overshoot_at(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
+                 allowance_history: list[tuple[float, float, float]]) -> dict[str, float] | None:
+    """Where `overshoot` found its largest excess (SI): the sample's time and angle and the bound in force then
+    (with the time that bound was set), for a summary to say which tick passed which allowance; None without
+    samples or allowances."""
+    t = np.asarray(trajectory_t, float)
+    s = np.asarray(trajectory_s, float)
+    if len(t) == 0 or not allowance_history:
+        return None
+    ht = np.array([h[0] for h in allowance_history])
+    bound = np.array([max(a, stop) for _, a, stop in allowance_history])
+    k = np.maximum(np.searchsorted(ht, t, side="right") - 1, 0)
+    i = int(np.argmax(s - bound[k]))
+    return {"t": float(t[i]), "s": float(s[i]), "bound": float(bound[k[i]]), "bound_t": float(ht[k[i]]),
+            "index": float(i), "samples": float(len(t))}
+
+
 def executed_angles(record: RunRecord, kin, T_base_cam_model: np.ndarray) -> np.ndarray:
     """The viewing angle of every executed robot state of a run (the reported joints through the
     kinematics), the trajectory overshoot and envelope figures are measured on."""
