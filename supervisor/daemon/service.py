@@ -506,7 +506,7 @@ class Daemon:
                 # the tick that came closest to (or past) its bound: which allowance, set when
                 "max_overshoot_at": None if at is None else {
                     "t": at["t"], "s_deg": math.degrees(at["s"]), "bound_deg": math.degrees(at["bound"]),
-                    "bound_set_t": at["bound_t"], "sample": int(at["index"]), "samples": int(at["samples"])},
+                    "bound_set_t": at["bound_t"], "sample": at["index"], "samples": at["samples"]},
                 "stage": self.sup.stage.name, "config_sha256": self.cfg.sha256}
 
     def install_signals(self) -> None:

@@ -130,30 +130,35 @@ def overshoot(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
     s = np.asarray(trajectory_s, float)
     if len(t) == 0 or not allowance_history:
         return -math.inf, 0.0
-    ht = np.array([h[0] for h in allowance_history])
-    bound = np.array([max(a, stop) for _, a, stop in allowance_history])
+    _, bound, k = _bound_in_force(t, allowance_history)
     shortfall = max(0.0, max(stop - a for _, a, stop in allowance_history))
-    k = np.searchsorted(ht, t, side="right") - 1
-    before = k < 0  # samples before the first allowance: bound by the first one
-    k[before] = 0
     return float(np.max(s - bound[k])), float(shortfall)
 
 
+def _bound_in_force(t: np.ndarray, allowance_history: list[tuple[float, float, float]]
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(allowance times, bounds, index of the bound in force at each of `t`): a bound is the allowance, or where
+    braking would have ended when a revision put the allowance behind that; samples before the first allowance
+    are bound by it."""
+    ht = np.array([h[0] for h in allowance_history])
+    bound = np.array([max(a, stop) for _, a, stop in allowance_history])
+    k = np.maximum(np.searchsorted(ht, t, side="right") - 1, 0)
+    return ht, bound, k
+
+
 def overshoot_at(trajectory_t: np.ndarray, trajectory_s: np.ndarray,
-                 allowance_history: list[tuple[float, float, float]]) -> dict[str, float] | None:
-    """Where `overshoot` found its largest excess (SI): the sample's time and angle and the bound in force then
-    (with the time that bound was set), for a summary to say which tick passed which allowance; None without
+                 allowance_history: list[tuple[float, float, float]]) -> dict[str, Any] | None:
+    """Where `overshoot` found its largest excess (SI): the sample's index, time and angle and the bound in force
+    then (with the time that bound was set), for a summary to say which tick passed which allowance; None without
     samples or allowances."""
     t = np.asarray(trajectory_t, float)
     s = np.asarray(trajectory_s, float)
     if len(t) == 0 or not allowance_history:
         return None
-    ht = np.array([h[0] for h in allowance_history])
-    bound = np.array([max(a, stop) for _, a, stop in allowance_history])
-    k = np.maximum(np.searchsorted(ht, t, side="right") - 1, 0)
+    ht, bound, k = _bound_in_force(t, allowance_history)
     i = int(np.argmax(s - bound[k]))
     return {"t": float(t[i]), "s": float(s[i]), "bound": float(bound[k[i]]), "bound_t": float(ht[k[i]]),
-            "index": float(i), "samples": float(len(t))}
+            "index": i, "samples": len(t)}
 
 
 def executed_angles(record: RunRecord, kin, T_base_cam_model: np.ndarray) -> np.ndarray:
