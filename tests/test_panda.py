@@ -205,3 +205,40 @@ def test_malformed_goal_is_rejected(kin):
         kin.ik(skew, kin.q_ready, max_iter=5)
     with pytest.raises(InvalidTransform, match="orthonormal"):
         kin.ik_or_raise(skew, kin.q_ready)
+
+
+def test_one_instance_is_safe_to_share_between_threads(kin):
+    """The daemon's hold thread reads the arm's state (forward kinematics) while the run's summary evaluates the
+    executed trajectory on the same instance: each thread must get its own pose, never the other thread's
+    (a shared pinocchio Data once put the final pose into a sample from seconds earlier: a 1.4 deg 'overshoot')."""
+    import sys
+    import threading
+
+    rng = np.random.default_rng(11)
+    qs = [rng.uniform(kin.q_min, kin.q_max) for _ in range(2)]
+    want = [kin.fk(q, "camera") for q in qs]
+    wrong = [0, 0]
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as the interpreter can: the race, if any, shows at once
+    try:
+        def hammer(i: int) -> None:
+            for _ in range(3000):
+                if not np.array_equal(kin.fk(qs[i], "camera"), want[i]):
+                    wrong[i] += 1
+
+        threads = [threading.Thread(target=hammer, args=(i,)) for i in range(2)]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+    finally:
+        sys.setswitchinterval(switch)
+    assert wrong == [0, 0]
+
+
+def test_an_instance_pickles_with_its_model_and_fresh_scratch_data(kin):
+    import pickle
+
+    other = pickle.loads(pickle.dumps(kin))
+    assert np.array_equal(other.fk(kin.q_ready, "camera"), kin.fk(kin.q_ready, "camera"))
+    assert other.data is not kin.data

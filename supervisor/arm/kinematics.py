@@ -19,6 +19,7 @@ import functools
 import math
 import site
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -192,7 +193,10 @@ class PandaKinematics:
                 frame = pin.Frame(name, flange.parentJoint, flange_id, flange.placement * M, pin.FrameType.OP_FRAME)
                 self._fid[name] = model.addFrame(frame)
         self.model = model
-        self.data = model.createData()
+        # pinocchio's Data is scratch space every call writes: one per thread, so that threads sharing this
+        # instance (the control loop, the driver's hold thread, a camera rendering from the arm's state, a
+        # run's summary) never read each other's poses.
+        self._local = threading.local()
         # Reach bound per frame: joint 2's origin does not move with q, and no frame can be farther from it
         # than the summed lengths of the links after it (triangle inequality). Used to reject a goal at once.
         j1, j2 = model.jointPlacements[1], model.jointPlacements[2]
@@ -240,11 +244,28 @@ class PandaKinematics:
         """Frame names this instance can evaluate."""
         return tuple(f for f in FRAMES if f in self._fid)
 
+    @property
+    def data(self) -> pin.Data:
+        """The calling thread's pinocchio scratch data (created at its first use)."""
+        d = getattr(self._local, "data", None)
+        if d is None:
+            d = self._local.data = self.model.createData()
+        return d
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        del state["_local"]  # per-thread scratch: the receiving process makes its own
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
+
     def clone(self) -> PandaKinematics:
-        """Another instance with the same model and fresh scratch data (for another thread)."""
+        """Another instance with the same model and its own scratch data."""
         other = object.__new__(PandaKinematics)
         other.__dict__.update(self.__dict__)
-        other.data = self.model.createData()
+        other._local = threading.local()
         return other
 
     def within_limits(self, q: np.ndarray, tol: float = 0.0) -> bool:
@@ -277,15 +298,17 @@ class PandaKinematics:
     def fk(self, q: np.ndarray, frame: str = "flange") -> np.ndarray:
         """`T_base_<frame>` at joint angles `q`."""
         fid = self._frame_id(frame)
-        pin.forwardKinematics(self.model, self.data, self._q(q))
-        return pin.updateFramePlacement(self.model, self.data, fid).homogeneous
+        d = self.data
+        pin.forwardKinematics(self.model, d, self._q(q))
+        return pin.updateFramePlacement(self.model, d, fid).homogeneous
 
     def body_points(self, q: np.ndarray) -> np.ndarray:
         """Points along the arm at joint angles `q`, in base coordinates: every joint's origin, the flange and
         the camera/tcp frames this instance has, (N, 3). What a clearance check measures (no link geometry)."""
-        pin.forwardKinematics(self.model, self.data, self._q(q))
-        pts = [self.data.oMi[j].translation for j in range(1, self.model.njoints)]
-        pts += [pin.updateFramePlacement(self.model, self.data, fid).translation for fid in self._fid.values()]
+        d = self.data
+        pin.forwardKinematics(self.model, d, self._q(q))
+        pts = [d.oMi[j].translation for j in range(1, self.model.njoints)]
+        pts += [pin.updateFramePlacement(self.model, d, fid).translation for fid in self._fid.values()]
         return np.array(pts)
 
     def jacobian(self, q: np.ndarray, frame: str = "flange") -> np.ndarray:
@@ -295,9 +318,10 @@ class PandaKinematics:
 
     def _fk_jac(self, q: np.ndarray, fid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Position, rotation and LOCAL_WORLD_ALIGNED Jacobian of frame `fid` in one pass."""
-        pin.computeJointJacobians(self.model, self.data, q)
-        M = pin.updateFramePlacement(self.model, self.data, fid)
-        J = pin.getFrameJacobian(self.model, self.data, fid, pin.LOCAL_WORLD_ALIGNED)
+        d = self.data
+        pin.computeJointJacobians(self.model, d, q)
+        M = pin.updateFramePlacement(self.model, d, fid)
+        J = pin.getFrameJacobian(self.model, d, fid, pin.LOCAL_WORLD_ALIGNED)
         return M.translation, M.rotation, J
 
     def ik(
