@@ -15,6 +15,7 @@ then execute it tick by tick — the "plan before moving" rule.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 from ruckig import ControlInterface, InputParameter
@@ -67,6 +68,9 @@ class SimRobot:
         self.dt = float(dt)
         self.clock = clock
         self.check_acceleration = bool(check_acceleration)
+        # One tick's state changes together: on a real clock the camera's thread reads the arm's state while
+        # the control tick steps it, and must never see a new q with the previous tick's flange pose.
+        self._lock = threading.Lock()
         self._q = q0.copy()
         self._dq = np.zeros(N_JOINTS)
         self._seq = 0
@@ -90,12 +94,13 @@ class SimRobot:
         On a real clock an arm at rest holds its position by itself and keeps reporting (time now);
         an arm left moving without commands does not (the time of its last tick: a state gap).
         """
-        if self._T_flange is None:
-            self._T_flange = self.kin.fk(self._q, "flange")
-        t = self._t
-        if self.clock is not None and not isinstance(self.clock, SimClock) and not np.any(self._dq):
-            t = max(t, self.clock.now())
-        return RobotState(t, self._seq, self._q.copy(), self._dq.copy(), self._T_flange.copy())
+        with self._lock:
+            if self._T_flange is None:
+                self._T_flange = self.kin.fk(self._q, "flange")
+            t = self._t
+            if self.clock is not None and not isinstance(self.clock, SimClock) and not np.any(self._dq):
+                t = max(t, self.clock.now())
+            return RobotState(t, self._seq, self._q.copy(), self._dq.copy(), self._T_flange.copy())
 
     @property
     def q(self) -> np.ndarray:
@@ -108,7 +113,8 @@ class SimRobot:
     def recover(self) -> None:
         """Clear a fault (the robot is at rest where it stopped)."""
         self.fault = None
-        self._dq = np.zeros(N_JOINTS)
+        with self._lock:
+            self._dq = np.zeros(N_JOINTS)
 
     # -- one control tick ------------------------------------------------------------
     def check_command(self, q_cmd: np.ndarray) -> None:
@@ -143,17 +149,18 @@ class SimRobot:
             self.fault = str(exc)
             raise
         q_cmd = np.array(q_cmd, dtype=float)
-        self._dq = (q_cmd - self._q) / self.dt
-        self._q = q_cmd
-        self._T_flange = None
-        self._seq += 1
-        if isinstance(self.clock, SimClock):
-            self.clock.advance(self.dt)  # simulated time: each tick is one control period
-            self._t = self.clock.now()
-        elif self.clock is not None:
-            self._t = self.clock.now()  # the real clock: the tick happens now (the caller paces)
-        else:
-            self._t = self._seq * self.dt  # no accumulated rounding over long runs
+        with self._lock:
+            self._dq = (q_cmd - self._q) / self.dt
+            self._q = q_cmd
+            self._T_flange = None
+            self._seq += 1
+            if isinstance(self.clock, SimClock):
+                self.clock.advance(self.dt)  # simulated time: each tick is one control period
+                self._t = self.clock.now()
+            elif self.clock is not None:
+                self._t = self.clock.now()  # the real clock: the tick happens now (the caller paces)
+            else:
+                self._t = self._seq * self.dt  # no accumulated rounding over long runs
         if self.faults is not None:
             self._inject()
         return self.state()
@@ -163,9 +170,7 @@ class SimRobot:
         f = self.faults
         T = None
         if f.needs_angle and self._seq % ANGLE_EVERY == 0:
-            if self._T_flange is None:
-                self._T_flange = self.kin.fk(self._q, "flange")
-            T = self._T_flange
+            T = self.true_state().T_base_flange
         f.update(T, bool(self._dq.any()))
         kind = f.active("robot")
         if kind == "state_gap":

@@ -211,3 +211,39 @@ def test_every_shipped_scene_start_view_and_arcs_are_reachable(kin):
             q = q0
             for k in range(0, 21, 4):
                 q = kin.ik_or_raise(ArcPath(T0, pivot, math.radians(az)).pose(math.radians(2.25 * k)), q, "camera")
+
+
+def test_a_state_read_from_another_thread_is_one_tick_whole(kin):
+    """On a real clock the camera's thread reads the arm's state while the control tick steps it: every state
+    it reads must carry the flange pose of the joints it reports (never the previous tick's)."""
+    import sys
+    import threading
+
+    from supervisor.clock import MonotonicClock
+
+    robot = SimRobot(kin, kin.q_ready, clock=MonotonicClock())
+    step = np.full(7, 0.2 * robot.dt)  # 0.2 rad/s on every joint: well within the velocity limits
+    done = threading.Event()
+    torn: list[float] = []
+
+    def reader() -> None:
+        while not done.is_set():
+            st = robot.true_state()
+            err = float(np.abs(st.T_base_flange - kin.fk(st.q, "flange")).max())
+            if err > 1e-12:
+                torn.append(err)
+
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    th = threading.Thread(target=reader)
+    th.start()
+    try:
+        q = kin.q_ready.copy()
+        for i in range(2000):
+            q = q + (step if (i // 500) % 2 == 0 else -step)
+            robot.step(q)
+    finally:
+        done.set()
+        th.join()
+        sys.setswitchinterval(switch)
+    assert torn == []
