@@ -57,6 +57,7 @@ class CanLink:
         self.problem: str | None = None
         self.alarms: list[str] = []
         self.external_latched = False
+        self.external_count = 0  # external stops received (under the daemon's lock): an arm checks none came
         if self.configured:
             self._open()
 
@@ -83,12 +84,13 @@ class CanLink:
 
     # -- what the daemon calls --------------------------------------------------------------
     def state_changed(self) -> None:
-        if self.channel is None:
+        ch = self.channel  # read once: also called from the receive thread (an external stop's state change)
+        if ch is None:
             return
         names = list(self.d.cfg.stages)
         stage = self.d.sup.stage.name
-        self.channel.set_state(self.d.state.value, names.index(stage) if stage in names else 255,
-                               fault=bool(self.d.fault) or bool(self.channel.faults))
+        ch.set_state(self.d.state.value, names.index(stage) if stage in names else 255,
+                     fault=bool(self.d.fault) or bool(ch.faults))
 
     def arm_problems(self, reopen: bool = True) -> list[str]:
         """Why arming must be refused now ([] when the side channel is fine or not configured). When
@@ -103,9 +105,16 @@ class CanLink:
         problem = self.channel.problem()
         if problem:
             return [f"CAN side channel: {problem}"]
-        if reopen:
-            self.external_latched = False  # an explicit (re-)arm clears the external stop's latch
         return []
+
+    def clear_external_latch(self, count_before: int) -> bool:
+        """An explicit (re-)arm clears the external stop's latch, unless a stop came after the arm request
+        began (`external_count` then was `count_before`): False then, and the latch stays. Under the daemon's
+        lock, with the state change it allows."""
+        if self.external_count != count_before:
+            return False
+        self.external_latched = False
+        return True
 
     def heartbeat(self, now: float) -> None:
         if self.channel is not None:
@@ -126,7 +135,8 @@ class CanLink:
     def summary(self) -> dict[str, Any] | None:
         if not self.configured:
             return None
-        out = self.channel.summary() if self.channel is not None else {"open": False, "problem": self.problem}
+        ch = self.channel  # read once: close() on the main thread may set it to None meanwhile
+        out = ch.summary() if ch is not None else {"open": False, "problem": self.problem}
         out["external_stop_latched"] = self.external_latched
         return out
 
@@ -139,16 +149,20 @@ class CanLink:
     def _external_stop(self, t: float) -> None:
         from supervisor.daemon.service import State
 
-        self.external_latched = True
-        braking = self.d.sup.request_stop("plc", halt_reason="external_stop")
-        self.d._log("external_stop", received_t=t, braking=braking, state=self.d.state.value)  # noqa: SLF001
-        if not braking and self.d.state in (State.IDLE, State.ARMED):
-            self.d._set_state(State.HALTED, "external_stop")  # noqa: SLF001
+        with self.d._lock:  # noqa: SLF001 - atomic with an arm's last check and its state change (clear_external_latch)
+            self.external_count += 1
+            self.external_latched = True
+            braking = self.d.sup.request_stop("plc", halt_reason="external_stop")
+            state = self.d.state
+            if not braking and state in (State.IDLE, State.ARMED):
+                self.d._set_state(State.HALTED, "external_stop")  # noqa: SLF001
+        self.d._log("external_stop", received_t=t, braking=braking, state=state.value)  # noqa: SLF001
 
     def _fault(self, fault: BusFault) -> None:
         if len(self.alarms) < MAX_ALARMS:
             self.alarms.append(str(fault))
         braking = self.d.sup.request_stop("can", halt_reason=f"fault:can_{fault.kind}")
         self.d._log("can_fault", fault=fault.kind, detail=fault.detail, braking=braking)  # noqa: SLF001
-        if self.channel is not None:
-            self.channel.fault_flag = True
+        ch = self.channel  # read once (the receive thread; close() on the main thread may clear it)
+        if ch is not None:
+            ch.fault_flag = True

@@ -108,6 +108,7 @@ class Daemon:
         self._hung = threading.Event()  # tests: make the idle loop hang (the watchdog must stop)
         self._pending_run = False
         self._next_plan = None
+        self._stops = 0  # stop requests so far (under _lock): an arm or a run being set up checks none came
         self._model_target: tuple | None = None  # [issue-10rec] (roi, board) of the last model build
         self.recorder = None  # [issue-10rec] the last run's SessionRecorder
         self._log("config", sha256=self.cfg.sha256, file=str(self.cfg.file), stage=self.sup.stage.name)
@@ -220,14 +221,24 @@ class Daemon:
                 "ticks": None if pacer is None else pacer.stats.summary()}
 
     def stop(self, reason: str) -> dict[str, Any]:
-        """Always accepted: a moving arm brakes (latched halt); an armed supervisor is disarmed."""
+        """Always accepted: a moving arm brakes (latched halt), also a run accepted but not yet moving (its
+        first tick brakes); a run still being set up is cancelled; an armed supervisor is disarmed."""
         self._log("stop_request", reason=reason, state=self.state.value)
-        if self.sup.request_stop(reason):
-            return {"state": "moving", "braking": True}
-        with self._lock:
-            if self.state is State.ARMED:
+        with self._lock:  # atomic with _execute_run taking the pending run and with an arm's last check
+            self._stops += 1
+            cancelled = self._pending_run
+            if cancelled:  # accepted, not started: it never starts
+                self._pending_run, self._next_plan = False, None
+            braking = self.sup.request_stop(reason)
+            if not braking and self.state is State.ARMED:
                 self._set_state(State.IDLE, "stop")
-        return {"state": self.state.value, "braking": False}
+        if cancelled:
+            self._log("run_cancelled", reason=reason)
+            with self._changed:
+                self._changed.notify_all()
+        if braking:
+            return {"state": "moving", "braking": True}
+        return {"state": self.state.value, "braking": False, **({"run_cancelled": True} if cancelled else {})}
 
     def wait(self, timeout: float) -> dict[str, Any]:
         """Block until no run is pending or moving, then the last run's summary."""
@@ -273,13 +284,19 @@ class Daemon:
     def _arm(self, how: str) -> dict[str, Any]:
         if self.sup.model is None:
             raise Refused(f"{how} needs a target model (model build, or model load FILE)")
+        before = self.state
+        with self._lock:
+            stops, external = self._stops, self.can.external_count
         self._reconnect_robot(how)
         problems = self.self_check(timeout=2.0)
         problems += self.can.arm_problems()  # CAN side channel (issue 12): bus open, no fault, or no arming
         if problems:
             raise Refused(f"{how} refused: " + "; ".join(problems))
-        self.fault = None
-        self._set_state(State.ARMED, how)
+        with self._lock:  # a stop (the operator's, the PLC's) that came during the checks refuses the arm
+            if self._stops != stops or self.state is not before or not self.can.clear_external_latch(external):
+                raise Refused(f"{how} refused: a stop came while it was checking (now {self.state.value})")
+            self.fault = None
+            self._set_state(State.ARMED, how)
         return {"ok": True, "state": self.state.value}
 
     def _reconnect_robot(self, why: str) -> None:
@@ -356,6 +373,8 @@ class Daemon:
         return {"ok": True, "features": model.n_features, "frame": model.frame}
 
     def _run_request(self, req: dict[str, Any]) -> dict[str, Any]:
+        with self._lock:
+            stops = self._stops
         if self.state is not State.ARMED:
             raise Refused(f"run needs an armed supervisor (now {self.state.value})")
         if self.can.arm_problems(reopen=False):  # CAN side channel (issue 12): a fault since arming
@@ -380,8 +399,11 @@ class Daemon:
         plan = self.sup.plan_arc(pivot, math.radians(az), None if sweep is None else math.radians(sweep))
         if plan.start_changed:  # the arc completes only from another configuration of the start view
             self.sup.move_to_arc_start(plan)  # logs `arc_start_move` in the daemon's event log
-        self._next_plan = plan
-        self._pending_run = True
+        with self._lock:  # a stop during the setup move or the planning cancels the run (the move ran to its end)
+            if self._stops != stops or self.state is not State.ARMED:
+                raise Refused(f"run cancelled: a stop came while it was being set up (now {self.state.value})")
+            self._next_plan = plan
+            self._pending_run = True
         return {"ok": True, "state": "moving", "theta_end_deg": math.degrees(plan.s_end),
                 "start_changed": plan.start_changed}
 
@@ -428,11 +450,15 @@ class Daemon:
             fut.set_result({"ok": False, "error": f"{type(exc).__name__}: {exc}", "state": self.state.value})
 
     def _execute_run(self) -> None:
-        plan, self._next_plan = self._next_plan, None
-        self._set_state(State.MOVING, "run")
+        with self._lock:  # atomic with stop(): the run is cancelled, or a stop from now on is kept for it
+            plan, self._next_plan = self._next_plan, None
+            pending, self._pending_run = self._pending_run, False
+            if not pending or self._shutdown.is_set():  # a shutdown from here on finds the run expected
+                return
+            self.sup.expect_run()
+            self._set_state(State.MOVING, "run")
         self.runs += 1
         with self._changed:
-            self._pending_run = False
             self._changed.notify_all()
 
         def heartbeat(now: float) -> None:

@@ -305,6 +305,9 @@ class Supervisor:
         self._setup_kin: PandaKinematics | None = None  # the arm's kinematics with SETUP_MARGIN (setup_goal)
         self._loop: SupervisorLoop | None = None
         self._lock = threading.Lock()
+        # between expect_run() and the loop's start: a stop request kept for the run (reason, halt_reason)
+        self._run_expected = False
+        self._early_stop: tuple[str, str | None] | None = None
 
     # -- configuration ---------------------------------------------------------------------
     @property
@@ -515,6 +518,13 @@ class Supervisor:
         `SupervisorLoop`): `heartbeat(now)` from every tick whose robot state was fresh (the daemon's
         watchdog, the CAN heartbeat), `on_brake(now, reason)` once at the brake (CAN STOP), `observer`
         sees states, frames and results (a session recorder)."""
+        try:
+            return self._run(plan, max_time, heartbeat, on_brake, observer)
+        finally:
+            with self._lock:  # an expected run ended, or was refused before its loop: nothing is kept for later
+                self._run_expected, self._early_stop = False, None
+
+    def _run(self, plan: ArcPlan, max_time: float, heartbeat, on_brake, observer) -> RunRecord:
         if self.model is None or self.T_base_cam_model is None:
             raise MotionRejected("no target model: build or load one first", 0.0)
         d, st, cfg = self.drivers, self._stage, self.cfg
@@ -537,6 +547,9 @@ class Supervisor:
                                   fits=self._fits_for_run(predictor) if d.realtime else None)
             with self._lock:
                 self._loop = loop
+                early, self._early_stop, self._run_expected = self._early_stop, None, False
+            if early is not None:  # a stop that came while this run was being set up: its first tick brakes
+                loop.request_stop(*early)
             rt = None
             if d.realtime:
                 rt = realtime_thread_setup()
@@ -586,12 +599,24 @@ class Supervisor:
             loop = self._loop
         return None if loop is None else loop.theta_allowed
 
+    def expect_run(self) -> None:
+        """A run is about to start (thread-safe): from now until `run` ends, `request_stop` is never lost. One
+        that comes before `run` has built its loop (a recording's start, the worker's, the follower's) is kept,
+        and that run's first tick brakes and halts with it."""
+        with self._lock:
+            self._run_expected, self._early_stop = True, None
+
     def request_stop(self, reason: str = "stop", halt_reason: str | None = None) -> bool:
-        """Brake the running motion, latched (thread-safe); False when nothing is moving."""
+        """Brake the running motion, latched (thread-safe); also the expected one (`expect_run`) before its
+        first tick. False when nothing is moving or expected."""
         with self._lock:
             loop = self._loop
-        if loop is None:
-            return False
+            if loop is None:
+                if not self._run_expected:
+                    return False
+                if self._early_stop is None:  # the first reason stands, as in the loop's latch
+                    self._early_stop = (reason, halt_reason)
+                return True
         loop.request_stop(reason, halt_reason)
         return True
 
