@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -187,6 +188,31 @@ def test_process_worker_drops_what_an_earlier_run_left_in_work(recording):
         got = []
         assert _wait(lambda: (got.extend(worker.poll(clock.now())), bool(got))[1], 30.0)
         assert [r.job.seq for r in got] == [j.seq]
+    finally:
+        worker.close()
+
+
+def test_process_worker_takes_another_model_at_a_new_run(recording):
+    """A model built anew between runs (the daemon's second `model build`: its descriptors differ) is the next
+    run's: the processes localize with it (they exited on it before, and every later run faulted), and no note
+    of the last run's refinement reaches the new one."""
+    cfg, ds, model = recording
+    clock = MonotonicClock()
+    half = dataclasses.replace(model, points_target=model.points_target[::2], descriptors=model.descriptors[::2])
+    ref = Localizer(half, cfg.localization)
+    worker = ProcessWorker(model, cfg.localization, clock, processes=1, max_pending=4)
+    try:
+        worker._notes.append({"step": 3})  # a refinement note the last run left untaken
+        worker.start_run(half)
+        assert worker.model is half and worker.take_notes() == []
+        j, h = _jobs(ds, model)[1]
+        assert worker.submit(j, h)
+        got = []
+        assert _wait(lambda: (got.extend(worker.poll(clock.now())), bool(got))[1], 30.0)
+        expect = ref.localize(j.image, h)
+        assert got[0].result.status is expect.status
+        assert abs(got[0].result.n_inliers - expect.n_inliers) <= max(3, 0.1 * expect.n_inliers)
+        assert all(p.is_alive() for p in worker._procs)
     finally:
         worker.close()
 

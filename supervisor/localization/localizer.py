@@ -147,6 +147,15 @@ class Localizer:
         self.record_evolution = False  # keep each run's candidates in `last_evolution` (guided-model fitting)
         self.last_evolution = None
 
+    def with_model(self, model: TargetModel) -> Localizer:
+        """This localizer on `model`: itself with the model swapped in when the descriptors are the same (a
+        refined model; the matcher stays), else a new one (another model: its own matcher)."""
+        if model.descriptors.shape == self.model.descriptors.shape and \
+                np.array_equal(model.descriptors, self.model.descriptors):
+            self.set_model(model)
+            return self
+        return Localizer(model, self.settings)
+
     def set_model(self, model: TargetModel) -> None:
         """Swap in a model with the same descriptors (e.g. refined 3D points); the matcher stays."""
         if model.descriptors.shape != self.model.descriptors.shape or \

@@ -306,8 +306,8 @@ def _process_main(settings: LocalizerSettings, model: TargetModel, shm_name: str
             msg = tasks.get()
             if msg is None:
                 return
-            if msg[0] == "model":
-                localizer.set_model(msg[1])
+            if msg[0] == "model":  # a refined model keeps the matcher; another model (a new build) needs its own
+                localizer = localizer.with_model(msg[1])
                 continue
             if msg[0] == "refiner":  # a new run: the model its observations are gated against
                 refiner = ModelRefiner(msg[1])
@@ -417,13 +417,14 @@ class ProcessWorker:
         with self._lock:
             self._run += 1  # what the last run left in work comes back to nobody
             self._done.clear()
+            self._notes = []
             self._model = model
             self._refinement = _Refinement(model, self.settings)
             self._refinement.refiner = None
             self._held = []
             self._refitting = False
-        for q in self._queues:
-            q.put(("model", model))
+            for q in self._queues:  # under the lock: a late refit of the last run cannot follow it
+                q.put(("model", model))
         self._begin_refinement(model)
 
     def _begin_refinement(self, model: TargetModel) -> None:
@@ -514,20 +515,16 @@ class ProcessWorker:
             if slot < 0:  # a refit that failed
                 self._error = payload
                 continue
-            with self._lock:
+            with self._lock:  # one hold with start_run's: a result is this run's, or dropped, never both
                 job, i, run = self._jobs.pop(key, (None, 0, -1))
                 self._load[i] -= 1
                 self._free.append(slot)
-                if run != self._run:
-                    job = None  # an earlier run's frame: its result belongs to no run now
-            if kind == "error":
-                self._error = payload
-                continue
-            if job is None:
-                continue
-            self._observe(job, payload)
-            self.completed += 1
-            self._done.append(JobResult(job, payload, self.clock.now()))
+                if kind == "error":
+                    self._error = payload
+                elif job is not None and run == self._run:  # an earlier run's frame belongs to no run now
+                    self._observe(job, payload)
+                    self.completed += 1
+                    self._done.append(JobResult(job, payload, self.clock.now()))
 
     def _observe(self, job: FrameJob, res: LocalizationResult) -> None:
         """Forward a result's matches to the refiner in process 0 (small arrays; the queue's feeder thread
@@ -538,12 +535,11 @@ class ProcessWorker:
 
     def _refitted(self, key: tuple[int, int], model: TargetModel, stats: dict[str, Any]) -> None:
         run, step = key
-        with self._lock:
+        with self._lock:  # one hold with start_run's: an earlier run's refit never reaches this run
             if run != self._run:
                 return  # an earlier run's refit: this run has its own model and schedule
-        for q in self._queues:
-            q.put(("model", model))
-        with self._lock:
+            for q in self._queues:
+                q.put(("model", model))
             self._model = model
             self._notes.append({"t": self.clock.now(), "step": step, **stats})
             self._refitting = False
