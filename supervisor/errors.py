@@ -93,6 +93,10 @@ class RobotFault(SupervisorError):
     """The robot cannot execute a command or reports a fault."""
 
 
+class MotionStopped(SupervisorError):
+    """A setup move braked on a stop request before its goal; the arm rests where the brake ended."""
+
+
 class JointLimitError(RobotFault):
     """A command would violate a joint position or velocity limit."""
 

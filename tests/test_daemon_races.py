@@ -92,10 +92,11 @@ def test_a_stop_after_a_run_was_accepted_cancels_it_and_the_arm_never_moves(daem
 
 
 @pytest.mark.slow
-def test_a_stop_during_a_runs_setup_move_cancels_the_run(daemon):
+def test_a_stop_during_a_runs_setup_move_brakes_it_and_cancels_the_run(daemon):
     _disarmed(daemon)
     q = daemon.drivers.robot.state().q.copy()
-    q[0] += math.radians(4.0)  # off the start view: the next run moves back first
+    q[0] += math.radians(10.0)  # off the start view: the next run moves back first
+    q_start = daemon.drivers.robot.state().q.copy()
     daemon.sup.move_joints_to(q)
     assert daemon._do("arm", {})["ok"]
     n_moves = _kinds(daemon).count("return_to_start")
@@ -113,12 +114,41 @@ def test_a_stop_during_a_runs_setup_move_cancels_the_run(daemon):
     while _kinds(daemon).count("return_to_start") == n_moves and time.monotonic() < t_end:
         time.sleep(0.002)
     assert _kinds(daemon).count("return_to_start") > n_moves, "the run request made no setup move"
-    assert daemon.stop("operator")["braking"] is False  # a setup move is not the gated run: it ends where planned
+    assert daemon.stop("operator") == {"state": "idle", "braking": True}  # the setup move brakes
     th.join(60.0)
     assert len(replies) == 1 and isinstance(replies[0], str) and replies[0].startswith("run cancelled"), replies
+    assert "stopped before its goal" in replies[0]
     runs = daemon.runs
     daemon._execute_run()
     assert daemon.runs == runs and daemon.state is State.IDLE
+    st = daemon.drivers.robot.state()
+    assert np.max(np.abs(st.dq)) < 1e-6  # at rest, short of the start view: braked, not run to its end
+    assert math.radians(0.5) < st.q[0] - q_start[0] <= math.radians(10.0) + 1e-6
+
+
+@pytest.mark.slow
+def test_a_stop_during_a_model_build_brakes_it_and_keeps_the_model(daemon):
+    _disarmed(daemon)
+    model = daemon.sup.model
+    replies: list = []
+
+    def build() -> None:
+        try:
+            replies.append(daemon._do("model", {"action": "build"}))
+        except Refused as exc:
+            replies.append(str(exc))
+
+    th = threading.Thread(target=build)
+    th.start()
+    t_end = time.monotonic() + 60.0  # the second model view is 2 cm away: the arm moves there
+    while time.monotonic() < t_end and not (daemon.sup._setup_depth > 0
+                                            and np.max(np.abs(daemon.drivers.robot.state().dq)) > 1e-3):
+        time.sleep(0.002)
+    assert daemon.stop("operator")["braking"] is True
+    th.join(60.0)
+    assert len(replies) == 1 and isinstance(replies[0], str) and replies[0].startswith("model build stopped"), replies
+    assert daemon.sup.model is model and "model_failed" in _kinds(daemon)
+    assert daemon._do("model", {"action": "build"})["ok"]  # nothing is left latched: the next build runs
 
 
 @pytest.mark.slow

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import threading
 import time
 
 import numpy as np
@@ -29,7 +30,7 @@ from drivers.robot import ROBOTS  # noqa: E402
 from drivers.robot.franka import FrankaRobot, _translate  # noqa: E402
 from sim.fci_server import FciServer  # noqa: E402
 from supervisor.arm.kinematics import PandaKinematics  # noqa: E402
-from supervisor.errors import DriverError, JointLimitError, RobotFault  # noqa: E402
+from supervisor.errors import DriverError, JointLimitError, MotionStopped, RobotFault  # noqa: E402
 from supervisor.geometry import make_T, pose_error  # noqa: E402
 from supervisor.motion.braking import PathLimits  # noqa: E402
 from supervisor.motion.paths import ArcPath  # noqa: E402
@@ -172,6 +173,34 @@ def test_stop_brakes_forward_from_the_current_state_and_rests(robot, kin):
     assert np.abs(end.dq[:6]).max() < 0.02  # at rest (franky-sim's joint 7 chatters at ~0.08 rad/s)
     assert (end.q - q0) @ (qs[-1] - q0) < (qs[-1] - q0) @ (qs[-1] - q0)  # stopped short of the target
     assert states and robot.holding  # held at rest by a zero-velocity motion
+
+
+def test_a_stopped_point_to_point_move_brakes_short_of_its_goal_and_holds(robot):
+    q0 = robot.state().q
+    goal = q0.copy()
+    goal[0] += 20 * DEG
+    polls: list = []
+
+    def stop() -> bool:  # read every STOP_POLL while the motion runs (the driver's lock is held: no state reads)
+        polls.append(time.monotonic())
+        return polls[-1] - polls[0] > 0.4  # a stop request 0.4 s into the move
+    raised: list = []
+
+    def move() -> None:
+        try:
+            robot.move_to(goal, speed=0.3, stop=stop)
+        except Exception as exc:  # noqa: BLE001 - the assertion below names it
+            raised.append(exc)
+
+    th = threading.Thread(target=move)
+    th.start()
+    th.join(30.0)
+    assert not th.is_alive() and len(raised) == 1 and isinstance(raised[0], MotionStopped), (raised, len(polls))
+    time.sleep(0.3)
+    end = robot.state()
+    assert 2 * DEG < end.q[0] - q0[0] < 18 * DEG  # braked on the way, forward, short of the goal
+    assert np.abs(end.dq[:6]).max() < 0.02 and robot.holding  # at rest, held there
+    robot.move_to(q0, speed=0.3)  # nothing latched: the next move runs to its goal
 
 
 def test_commands_that_stop_coming_let_the_arm_brake_by_itself(robot):

@@ -57,7 +57,7 @@ from drivers.robot.base import Robot
 from supervisor.arm.kinematics import N_JOINTS, PandaKinematics
 from supervisor.arm.state import RobotState
 from supervisor.clock import Clock, MonotonicClock
-from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, RobotFault
+from supervisor.errors import DriverError, DriverUnavailable, JointLimitError, MotionStopped, RobotFault
 
 COMMAND_MODES = ("velocity", "position", "position_velocity")
 STALE_STATE_S = 0.02  # s: a robot state older than this steers no new motion (the supervisor's gap rule)
@@ -67,6 +67,7 @@ SETTLE_TOLERANCE = 0.5e-3  # rad per joint: where a setup move ends (the arc's s
 SETTLE_WINDOW = 0.05
 SETTLE_SPEED = 0.05  # rad/s: the settle's largest correction speed
 SETTLE_TIMEOUT = 3.0  # s
+STOP_POLL = 0.002  # s: how often a stoppable point-to-point move reads its stop request
 # s: how long connecting may take (libfranka's handshake has no timeout of its own: a controller that accepts
 # the connection and never answers would block the caller, e.g. the daemon's start, forever)
 CONNECT_TIMEOUT = 30.0
@@ -339,7 +340,7 @@ class FrankaRobot(Robot):
         raw = self._raw
         return np.asarray(raw.O_T_EE.matrix) @ np.linalg.inv(np.asarray(raw.F_T_EE.matrix))
 
-    def move_to(self, q: np.ndarray, speed: float = 0.2) -> None:
+    def move_to(self, q: np.ndarray, speed: float = 0.2, stop=None) -> None:
         """Blocking point-to-point move to `q` with franky's own planner at `speed` x the limits, then
         held at `q` (the active hold) until every joint has stayed within SETTLE_TOLERANCE of it for
         SETTLE_WINDOW.
@@ -347,7 +348,9 @@ class FrankaRobot(Robot):
         franky's `JointMotion` ends where the controller's impedance leaves the joints (franky-sim: up to
         3 mrad off on joint 7, more than the 1 mrad at which the supervisor accepts an arc's start); the
         hold pulls them in. An arm that does not settle within SETTLE_TIMEOUT raises RobotFault. For setup
-        moves at rest (e.g. to the start posture), never inside the supervised loop.
+        moves at rest (e.g. to the start posture), never inside the supervised loop. With `stop` (a callable,
+        read every STOP_POLL while the motion runs): once true, the arm brakes (franky's stop motion), is held
+        where it came to rest, and MotionStopped is raised.
         """
         q = self._check_position(q)
         if not 0 < speed <= 1:
@@ -357,9 +360,16 @@ class FrankaRobot(Robot):
             self._reset_stream()
             try:
                 self._brake(robot)  # ends the hold: a position motion cannot take over a velocity one
-                self._move(robot, franky.JointMotion(q, relative_dynamics_factor=speed), asynchronous=False)
+                self._move(robot, franky.JointMotion(q, relative_dynamics_factor=speed), asynchronous=stop is not None)
+                if stop is not None:
+                    while not robot.join_motion(STOP_POLL):  # raises what the motion met
+                        if stop():  # the stop motion of the running motion's type (joint positions)
+                            self._move(robot, franky.JointStopMotion(), asynchronous=False)
+                            self._hold(robot)
+                            raise MotionStopped("the point-to-point move was stopped before its goal; the arm "
+                                                "rests where it braked")
                 self._hold(robot, q)
-            except (DriverError, RobotFault):
+            except (DriverError, RobotFault, MotionStopped):
                 raise
             except Exception as exc:  # noqa: BLE001
                 raise self._fail(exc, "the point-to-point move") from exc

@@ -32,7 +32,7 @@ import numpy as np
 from supervisor.arm.state import state_problem
 from supervisor.config import Config, load_config
 from supervisor.daemon.notify import Notifier
-from supervisor.errors import ConfigError, SupervisorError
+from supervisor.errors import ConfigError, MotionStopped, SupervisorError
 from supervisor.localization.model import DepthROI, TargetModel
 from supervisor.runtime.builder import Supervisor, open_drivers
 from supervisor.runtime.events import EventLog
@@ -229,16 +229,14 @@ class Daemon:
             cancelled = self._pending_run
             if cancelled:  # accepted, not started: it never starts
                 self._pending_run, self._next_plan = False, None
-            braking = self.sup.request_stop(reason)
-            if not braking and self.state is State.ARMED:
+            braking = self.sup.request_stop(reason)  # the gated run, or a setup move (model build, run's setup)
+            if self.state is State.ARMED:
                 self._set_state(State.IDLE, "stop")
         if cancelled:
             self._log("run_cancelled", reason=reason)
             with self._changed:
                 self._changed.notify_all()
-        if braking:
-            return {"state": "moving", "braking": True}
-        return {"state": self.state.value, "braking": False, **({"run_cancelled": True} if cancelled else {})}
+        return {"state": self.state.value, "braking": braking, **({"run_cancelled": True} if cancelled else {})}
 
     def wait(self, timeout: float) -> dict[str, Any]:
         """Block until no run is pending or moving, then the last run's summary."""
@@ -365,6 +363,8 @@ class Daemon:
                 model = self.sup.capture_model(T0, roi, board)
             except Exception as exc:
                 self._log("model_failed", action=action, error=f"{type(exc).__name__}: {exc}")
+                if isinstance(exc, MotionStopped):
+                    raise Refused(f"model build stopped: {exc}") from None
                 raise
             self._model_target = (roi, board)  # [issue-10rec] for session recordings
         else:
@@ -391,15 +391,19 @@ class Daemon:
             pivot = (self.sup.model.T_base_target @ np.append(self.sup.model.centroid, 1.0))[:3]
         # Every arc starts at the model view; after a run the arm rests where it halted: move back first (a
         # planned, checked setup move away from the boundary, part of this explicit request).
-        q_now = self.drivers.robot.state().q
-        q_start = self.sup.setup_goal(self.sup.T_base_cam_model, q_now)
-        if np.max(np.abs(q_start - q_now)) > START_TOLERANCE:
-            self._log("return_to_start")
-            self.sup.move_camera_to(self.sup.T_base_cam_model)
-        plan = self.sup.plan_arc(pivot, math.radians(az), None if sweep is None else math.radians(sweep))
-        if plan.start_changed:  # the arc completes only from another configuration of the start view
-            self.sup.move_to_arc_start(plan)  # logs `arc_start_move` in the daemon's event log
-        with self._lock:  # a stop during the setup move or the planning cancels the run (the move ran to its end)
+        try:
+            with self.sup.stoppable():  # a stop brakes these setup moves (MotionStopped)
+                q_now = self.drivers.robot.state().q
+                q_start = self.sup.setup_goal(self.sup.T_base_cam_model, q_now)
+                if np.max(np.abs(q_start - q_now)) > START_TOLERANCE:
+                    self._log("return_to_start")
+                    self.sup.move_camera_to(self.sup.T_base_cam_model)
+                plan = self.sup.plan_arc(pivot, math.radians(az), None if sweep is None else math.radians(sweep))
+                if plan.start_changed:  # the arc completes only from another configuration of the start view
+                    self.sup.move_to_arc_start(plan)  # logs `arc_start_move` in the daemon's event log
+        except MotionStopped as exc:
+            raise Refused(f"run cancelled: a stop came while it was being set up: {exc}") from None
+        with self._lock:  # a stop during the setup (or its planning) cancels the run
             if self._stops != stops or self.state is not State.ARMED:
                 raise Refused(f"run cancelled: a stop came while it was being set up (now {self.state.value})")
             self._next_plan = plan

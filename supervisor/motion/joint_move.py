@@ -15,7 +15,7 @@ import math
 import numpy as np
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
-from supervisor.errors import JointLimitError, RobotFault
+from supervisor.errors import JointLimitError, MotionStopped, RobotFault
 
 TOL = 1e-9  # absolute slack on position (rad) and velocity (rad/s) checks
 REL_V = 1e-9  # relative slack on the velocity limit
@@ -110,9 +110,11 @@ def joint_line(q0: np.ndarray, q_goal: np.ndarray, step: float = math.radians(0.
     return q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q_goal - q0)
 
 
-def move_joints(robot, kin, q_goal: np.ndarray, pacer, limits_scale: float = 0.5, straight: bool = False) -> None:
+def move_joints(robot, kin, q_goal: np.ndarray, pacer, limits_scale: float = 0.5, straight: bool = False,
+                stop=None) -> None:
     """Plan (and check) a move to rest at `q_goal` from the robot's state, then command it tick by tick
-    (`straight`: on the joint-space line, see plan_joint_move)."""
+    (`straight`: on the joint-space line, see plan_joint_move). `stop()`, read every tick: once true, the robot
+    brakes (its own controlled stop) and MotionStopped is raised."""
     st = robot.state()
     dq0 = st.dq
     if straight:  # a line in joint space starts from rest: a reported velocity at rest is noise, not motion
@@ -123,14 +125,17 @@ def move_joints(robot, kin, q_goal: np.ndarray, pacer, limits_scale: float = 0.5
     plan = plan_joint_move(kin, st.q, dq0, q_goal, robot.control_period, limits_scale, straight)
     pacer.start()
     for q in plan:
+        if stop is not None and stop():
+            robot.stop()
+            raise MotionStopped("the setup move was stopped before its goal; the arm rests where it braked")
         robot.command(q)
         pacer.wait()
     robot.command(plan[-1])  # one tick at rest
     pacer.wait()
 
 
-def move_camera_to(robot, kin, T_base_cam: np.ndarray, pacer, limits_scale: float = 0.5) -> np.ndarray:
+def move_camera_to(robot, kin, T_base_cam: np.ndarray, pacer, limits_scale: float = 0.5, stop=None) -> np.ndarray:
     """IK for the camera frame (seeded by the current joints), then `move_joints`; returns the goal joints."""
     q_goal = kin.ik_or_raise(T_base_cam, robot.state().q, "camera")
-    move_joints(robot, kin, q_goal, pacer, limits_scale)
+    move_joints(robot, kin, q_goal, pacer, limits_scale, stop=stop)
     return q_goal

@@ -20,6 +20,7 @@ import gc
 import math
 import os
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,7 @@ import numpy as np
 from supervisor.arm.kinematics import PandaKinematics
 from supervisor.clock import Clock, MonotonicClock, SimClock
 from supervisor.config import Config
-from supervisor.errors import CameraTimeout, KinematicsError
+from supervisor.errors import CameraTimeout, KinematicsError, MotionStopped
 from supervisor.geometry import make_T
 from supervisor.localization.model import TargetModel, build_model
 from supervisor.motion.joint_move import joint_line, move_camera_to, move_joints
@@ -308,6 +309,9 @@ class Supervisor:
         # between expect_run() and the loop's start: a stop request kept for the run (reason, halt_reason)
         self._run_expected = False
         self._early_stop: tuple[str, str | None] | None = None
+        # inside stoppable(): setup moves brake on request_stop (depth: nested stoppable blocks)
+        self._setup_depth = 0
+        self._setup_stop = threading.Event()
 
     # -- configuration ---------------------------------------------------------------------
     @property
@@ -331,25 +335,49 @@ class Supervisor:
         """`T_base_cam` from the robot's reported flange pose and the hand-eye calibration."""
         return self.drivers.robot.state().T_base_flange @ self.drivers.kin.T_flange_cam
 
+    @contextmanager
+    def stoppable(self):
+        """A block of setup work (a model build, a run's setup) whose moves `request_stop` brakes: the move
+        under way brakes and raises MotionStopped, and so does every later move of the block (a stop between
+        two moves is not lost). Nests; the request is forgotten when the outermost block ends."""
+        with self._lock:
+            if self._setup_depth == 0:
+                self._setup_stop.clear()
+            self._setup_depth += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._setup_depth -= 1
+
+    def _setup_move(self, move) -> None:
+        """Run `move(stop)` (a setup move reading `stop()` while it moves) inside `stoppable`."""
+        with self.stoppable():
+            if self._setup_stop.is_set():
+                raise MotionStopped("a stop came before this setup move; the arm did not move")
+            move(self._setup_stop.is_set)
+
     def move_camera_to(self, T_base_cam: np.ndarray) -> None:
         """A planned, checked joint move to rest with the camera at `T_base_cam` (setup motions). A driver
         with a point-to-point move of its own (franka: the controller's planner) makes it; otherwise the
-        Ruckig joint plan is commanded tick by tick."""
+        Ruckig joint plan is commanded tick by tick. `request_stop` brakes it (MotionStopped)."""
         robot, kin = self.drivers.robot, self.drivers.kin
         if not self._driver_moves_itself():
-            move_camera_to(robot, kin, T_base_cam, self.pacer())
+            self._setup_move(lambda stop: move_camera_to(robot, kin, T_base_cam, self.pacer(), stop=stop))
             return
-        robot.move_to(self.setup_goal(T_base_cam, robot.state().q))
+        goal = self.setup_goal(T_base_cam, robot.state().q)
+        self._setup_move(lambda stop: robot.move_to(goal, stop=stop))
 
     def move_joints_to(self, q_goal: np.ndarray, straight: bool = False) -> None:
         """A planned, checked setup move to rest at `q_goal`: the driver's own point-to-point move if it has one
         (franka: the controller's joint-space planner), else the Ruckig joint plan tick by tick, on the
-        joint-space line itself when `straight` (see plan_joint_move)."""
-        robot = self.drivers.robot
+        joint-space line itself when `straight` (see plan_joint_move). `request_stop` brakes it (MotionStopped)."""
+        robot, goal = self.drivers.robot, np.asarray(q_goal, float)
         if not self._driver_moves_itself():
-            move_joints(robot, self.drivers.kin, np.asarray(q_goal, float), self.pacer(), straight=straight)
+            self._setup_move(lambda stop: move_joints(robot, self.drivers.kin, goal, self.pacer(), straight=straight,
+                                                      stop=stop))
         else:
-            robot.move_to(np.asarray(q_goal, float))
+            self._setup_move(lambda stop: robot.move_to(goal, stop=stop))
 
     def _driver_moves_itself(self) -> bool:
         """True when the robot driver has a point-to-point move of its own (`move_to`) for setup motions."""
@@ -391,20 +419,22 @@ class Supervisor:
 
     def capture_model(self, T_base_cam0: np.ndarray, roi, board=None) -> TargetModel:
         """The model protocol: two images 2 cm apart along camera x (poses from the robot), triangulated;
-        the camera ends back at the first view, which becomes the arc's start."""
+        the camera ends back at the first view, which becomes the arc's start. `request_stop` brakes it
+        (MotionStopped; the model stays as it was)."""
         shots = []
         kept = []  # [issue-10rec] the model images and robot states, kept for session recordings
         baseline = make_T(np.eye(3), [self.cfg.dataset.model_baseline, 0.0, 0.0])
-        for T in (T_base_cam0, T_base_cam0 @ baseline):
-            self.move_camera_to(T)
-            frame = self.frame_at_rest()
-            shots.append((frame.image, self.camera_pose()))
-            kept.append((frame, self.drivers.robot.state()))
-        (i0, T0), (i1, T1) = shots
-        cam = self.drivers.camera
-        intrinsics = getattr(cam, "output_intrinsics", cam.intrinsics)  # zero distortion if the driver undistorts
-        model = build_model(i0, i1, T0, T1, intrinsics, self.cfg.localization, roi, board=board)
-        self.move_camera_to(T0)
+        with self.stoppable():
+            for T in (T_base_cam0, T_base_cam0 @ baseline):
+                self.move_camera_to(T)
+                frame = self.frame_at_rest()
+                shots.append((frame.image, self.camera_pose()))
+                kept.append((frame, self.drivers.robot.state()))
+            (i0, T0), (i1, T1) = shots
+            cam = self.drivers.camera
+            intrinsics = getattr(cam, "output_intrinsics", cam.intrinsics)  # zero distortion if the driver undistorts
+            model = build_model(i0, i1, T0, T1, intrinsics, self.cfg.localization, roi, board=board)
+            self.move_camera_to(T0)
         self.use_model(model, T0)
         self.model_images = kept  # [issue-10rec] after use_model, which forgets them
         return model
@@ -608,10 +638,13 @@ class Supervisor:
 
     def request_stop(self, reason: str = "stop", halt_reason: str | None = None) -> bool:
         """Brake the running motion, latched (thread-safe); also the expected one (`expect_run`) before its
-        first tick. False when nothing is moving or expected."""
+        first tick, and the setup moves of a `stoppable` block. False when nothing is moving or expected."""
         with self._lock:
             loop = self._loop
             if loop is None:
+                if self._setup_depth > 0:  # a setup move (or the work between two): it brakes, MotionStopped
+                    self._setup_stop.set()
+                    return True
                 if not self._run_expected:
                     return False
                 if self._early_stop is None:  # the first reason stands, as in the loop's latch
