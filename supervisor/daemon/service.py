@@ -9,9 +9,10 @@ States (latched halts; nothing restarts motion by itself):
 The main thread owns the supervisor: it runs the motions (the control loop ticks here) and, at
 rest, an idle loop that checks the robot state and the camera are fresh before each systemd
 watchdog ping. Requests arrive on the control socket's threads; `status`, `stop` and `wait` are
-answered there at once (`stop` is always accepted), everything else is queued to the main thread,
-which refuses what the current state does not allow. SIGTERM/SIGINT brake a moving arm, then the
-daemon flushes its logs and exits 0; SIGHUP reloads the config when idle.
+answered there at once (`stop` is always accepted: it brakes the gated run or a setup move, cancels a
+run accepted but not yet moving, and disarms), everything else is queued to the main thread, which
+refuses what the current state does not allow. SIGTERM/SIGINT brake a moving arm, then the daemon
+flushes its logs and exits 0; SIGHUP reloads the config when idle.
 """
 
 from __future__ import annotations
