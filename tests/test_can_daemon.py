@@ -90,8 +90,8 @@ def test_external_stop_latches_and_sigkill_trips_the_monitor_in_another_process(
                 break
             last_halt = d.req({"cmd": "wait", "timeout": 60}).get("summary", {}).get("halt_reason")
         state = d.req({"cmd": "status"})["state"]
-        # the monitor starts now: requests handled on the daemon's main thread (a model build's setup motions,
-        # planning an arc) pause the idle loop's heartbeat, and a consumer running then would trip on them
+        # the monitor starts now: what it checks here is the kill (the heartbeat through a model build and a
+        # run's setup is tests/test_daemon_liveness.py's, with a timeout a loaded machine's idle loop never trips)
         with open(mon_out, "w") as f:
             mon = subprocess.Popen(d.in_netns(SUPERVISOR, "--config", str(cfg), "can", "monitor"), stdout=f,
                                    stderr=subprocess.STDOUT)

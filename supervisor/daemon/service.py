@@ -6,12 +6,16 @@ States (latched halts; nothing restarts motion by itself):
       ^             |                                     |
       +----stop-----+                          (a fault: rearm re-checks first)
 
-The main thread owns the supervisor: it runs the motions (the control loop ticks here) and, at
+The main thread owns the supervisor: it runs the gated motions (the control loop ticks here) and, at
 rest, an idle loop that checks the robot state and the camera are fresh before each systemd
-watchdog ping. Requests arrive on the control socket's threads; `status`, `stop` and `wait` are
-answered there at once (`stop` is always accepted: it brakes the gated run or a setup move, cancels a
-run accepted but not yet moving, and disarms), everything else is queued to the main thread, which
-refuses what the current state does not allow. SIGTERM/SIGINT brake a moving arm, then the daemon
+watchdog ping and CAN heartbeat. Requests arrive on the control socket's threads; `status`, `stop` and
+`wait` are answered there at once (`stop` is always accepted: it brakes the gated run or a setup move,
+cancels a run accepted but not yet moving, and disarms), everything else is queued to the main thread,
+which refuses what the current state does not allow. Work that takes longer than a heartbeat period
+(a model build and its setup moves, a run's setup moves and arc planning, a run's start and summary)
+runs on a helper thread while the main thread goes on with the idle loop's checks and liveness
+(`_alive_while`), for at most SETUP_BUDGET: systemd's watchdog (WatchdogSec=2) and the PLC's heartbeat
+consumer (100 ms) see a daemon that lives through a model build, and one that hangs in it. SIGTERM/SIGINT brake a moving arm, then the daemon
 flushes its logs and exits 0; SIGHUP reloads the config when idle.
 """
 
@@ -24,7 +28,9 @@ import queue
 import signal
 import threading
 import time
+from concurrent import futures
 from concurrent.futures import Future
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +50,7 @@ from supervisor.can.link import CanLink  # CAN side channel (issue 12)
 IDLE_PERIOD = 0.02  # s: the idle loop's period (freshness checks, watchdog, queued requests)
 STATE_MAX_AGE = 0.1  # s: a robot state older than this at rest is not fresh
 REQUEST_TIMEOUT = 120.0  # s: how long a queued request may take (a model build moves the arm)
+SETUP_BUDGET = REQUEST_TIMEOUT  # s: setup work kept alive (_alive_while) at most this long; then the beats stop
 SHUTDOWN_RECORDING_WAIT = 0.8  # s: [issue-10rec] a session's index at SIGTERM (the exit is due within 2 s)
 
 
@@ -85,6 +92,37 @@ class Refused(SupervisorError):
     """A request the daemon will not carry out now (the reply says why; the daemon carries on)."""
 
 
+class SetupThread:
+    """The daemon's one helper thread for setup work (`Daemon._alive_while`), alive as long as the daemon.
+
+    Long-lived on purpose: a child process that a piece of work starts (a model build starts the localization
+    processes) is tied to the thread that started it (PR_SET_PDEATHSIG, supervisor.processes) and would be
+    killed when a thread that lived for that one piece of work ended."""
+
+    def __init__(self) -> None:
+        self._work: queue.SimpleQueue[tuple[Callable[[], Any], Future] | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._serve, name="daemon-setup", daemon=True)
+        self._thread.start()
+
+    def submit(self, work: Callable[[], Any]) -> Future:
+        fut: Future = Future()
+        self._work.put((work, fut))
+        return fut
+
+    def _serve(self) -> None:
+        while (item := self._work.get()) is not None:
+            work, fut = item
+            try:
+                fut.set_result(work())
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller, raised there
+                fut.set_exception(exc)
+
+    def close(self, timeout: float = 5.0) -> None:
+        """End the thread after the work queued so far (the children it started end with it)."""
+        self._work.put(None)
+        self._thread.join(timeout)
+
+
 class Daemon:
     """One supervisor on its drivers, its state machine, and the requests that drive it."""
 
@@ -107,6 +145,8 @@ class Daemon:
         self._changed = threading.Condition()
         self._lock = threading.Lock()
         self._hung = threading.Event()  # tests: make the idle loop hang (the watchdog must stop)
+        self._setup = SetupThread()  # setup work, kept alive by the main thread (_alive_while)
+        self.setup_budget = SETUP_BUDGET
         self._pending_run = False
         self._next_plan = None
         self._stops = 0  # stop requests so far (under _lock): an arm or a run being set up checks none came
@@ -440,19 +480,47 @@ class Daemon:
         t0 = time.monotonic()
         while self._hung.is_set() and not self._shutdown.is_set():  # tests: a hung loop
             time.sleep(0.01)
-        if not self.fresh():
-            self.notifier.watchdog(self._now())
-            self.can.heartbeat(self._now())  # CAN side channel (issue 12): the heartbeat at rest
+        self._beat()
         try:
             cmd, req, fut = self._requests.get(timeout=max(0.0, IDLE_PERIOD - (time.monotonic() - t0)))
         except queue.Empty:
             return
         try:
-            fut.set_result(self._do(cmd, req))
+            fut.set_result(self._alive_while(cmd, lambda: self._do(cmd, req)))
         except Refused as exc:
             fut.set_result({"ok": False, "error": str(exc), "state": self.state.value})
         except Exception as exc:  # noqa: BLE001
             fut.set_result({"ok": False, "error": f"{type(exc).__name__}: {exc}", "state": self.state.value})
+
+    def _beat(self) -> None:
+        """The idle loop's liveness: after its freshness checks pass, the systemd watchdog ping and the CAN
+        heartbeat (each sent when due). Nothing while the test hook hangs the loop."""
+        if self._hung.is_set() or self.fresh():
+            return
+        now = self._now()
+        self.notifier.watchdog(now)
+        self.can.heartbeat(now)  # CAN side channel (issue 12): the heartbeat at rest
+
+    def _alive_while(self, what: str, work: Callable[[], Any]) -> Any:
+        """`work()` (a request, a run's start or summary: setup work with the arm at rest or in a checked setup
+        move) on the setup thread, while this thread goes on with the idle loop's checks and liveness (`_beat`)
+        every IDLE_PERIOD; returns its result or raises its exception. Work still running after `setup_budget`
+        seconds is reported (`setup_overrun`), a setup move under way is asked to brake, and the beats stop:
+        systemd's watchdog and the PLC's heartbeat consumer then see the daemon hung, as it is."""
+        fut = self._setup.submit(work)
+        budget = self.setup_budget
+        t_end = time.monotonic() + budget
+        overrun = False
+        while not futures.wait([fut], timeout=IDLE_PERIOD).done:
+            if overrun:
+                continue
+            if time.monotonic() > t_end:
+                overrun = True
+                self._log("setup_overrun", what=what, budget_s=budget)
+                self.sup.request_stop(f"{what} took over {budget:g} s")
+                continue
+            self._beat()
+        return fut.result()
 
     def _execute_run(self) -> None:
         with self._lock:  # atomic with stop(): the run is cancelled, or a stop from now on is kept for it
@@ -471,7 +539,12 @@ class Daemon:
                 self.notifier.watchdog(now)
                 self.can.heartbeat(now)  # CAN side channel (issue 12): from the loop's fresh ticks
 
-        recorder = self._start_recording(plan)  # [issue-10rec]
+        try:  # [issue-10rec] (a recorder's start waits for the last session's end)
+            recorder = self._alive_while("run_start", lambda: self._start_recording(plan))
+        except Exception as exc:  # noqa: BLE001 - no recording, no run: refused before the first command
+            self.sup.forget_expected_run()
+            self._run_refused(exc, None)
+            return
         # CAN side channel (issue 12): STOP on every brake, STATUS from the localization results
         try:
             record = self.sup.run(plan, heartbeat=heartbeat, on_brake=self.can.on_brake,
@@ -479,7 +552,12 @@ class Daemon:
         except Exception as exc:  # noqa: BLE001 - refused before the first command (the loop itself never raises)
             self._run_refused(exc, recorder)
             return
-        self.last_summary = self._summary(record)
+        try:
+            self.last_summary = self._alive_while("run_summary", lambda: self._summary(record))
+        except Exception as exc:  # noqa: BLE001 - the arm is at rest already; the halt is what counts
+            self.last_summary = {"halt_angle_deg": math.degrees(record.halt_s), "halt_reason": record.halt_reason,
+                                 "stage": self.sup.stage.name, "config_sha256": self.cfg.sha256,
+                                 "error": f"the run's summary failed: {type(exc).__name__}: {exc}"}
         if recorder is not None:  # [issue-10rec] the writer thread finishes the session (in a hurry at shutdown)
             recorder.finish(record, self.last_summary, hurry=self._shutdown.is_set())
             if self._shutdown.is_set():
@@ -562,5 +640,6 @@ class Daemon:
             try:
                 self.drivers.close()
             finally:
+                self._setup.close()
                 self.events.close()
                 self.notifier.close()

@@ -550,9 +550,8 @@ class Supervisor:
         sees states, frames and results (a session recorder)."""
         try:
             return self._run(plan, max_time, heartbeat, on_brake, observer)
-        finally:
-            with self._lock:  # an expected run ended, or was refused before its loop: nothing is kept for later
-                self._run_expected, self._early_stop = False, None
+        finally:  # an expected run ended, or was refused before its loop: nothing is kept for later
+            self.forget_expected_run()
 
     def _run(self, plan: ArcPlan, max_time: float, heartbeat, on_brake, observer) -> RunRecord:
         if self.model is None or self.T_base_cam_model is None:
@@ -635,6 +634,11 @@ class Supervisor:
         and that run's first tick brakes and halts with it."""
         with self._lock:
             self._run_expected, self._early_stop = True, None
+
+    def forget_expected_run(self) -> None:
+        """The run `expect_run` announced will not start (thread-safe): a stop from now on is not kept for it."""
+        with self._lock:
+            self._run_expected, self._early_stop = False, None
 
     def request_stop(self, reason: str = "stop", halt_reason: str | None = None) -> bool:
         """Brake the running motion, latched (thread-safe); also the expected one (`expect_run`) before its
