@@ -90,3 +90,26 @@ def test_a_dead_fit_process_raises_instead_of_never_answering():
             f.take(0)
     finally:
         f.shutdown()
+
+
+class _RaisingPredictor:
+    """A predictor with a bug: its update raises (picklable, for the fit process)."""
+
+    kind = "raising"
+
+    def update(self, xs, ns):
+        return math.log(-1.0)  # ValueError: math domain error
+
+    def reset(self):
+        pass
+
+
+def test_a_predictors_exception_reaches_the_loop_from_the_fit_process_with_where_it_was_raised(fits):
+    fits.start_run(_RaisingPredictor())
+    xs, ns, err = _steps(0.5)[0]
+    fits.submit(0, xs, ns, err)
+    pred, exc = _wait(fits, 0)
+    assert pred is None and isinstance(exc, ValueError) and str(exc) == "math domain error"
+    line = _RaisingPredictor.update.__code__.co_firstlineno + 1
+    assert len(exc.__notes__) == 1 and exc.__notes__[0].startswith("at ")
+    assert exc.__notes__[0].endswith(f"test_fits.py:{line} in update")

@@ -117,7 +117,9 @@ def test_a_predictor_that_raises_leaves_no_valid_model_and_the_warmup_allowance_
 
     rig.loop.predictor = Broken()
     rec = rig.loop.run()
-    assert rig.events.of_kind("predictor_error")
+    err = rig.events.of_kind("predictor_error")
+    assert err and err[0]["error"] == "ZeroDivisionError('bug')"
+    assert err[0]["where"].startswith("at ") and err[0]["where"].endswith(" in update")  # where it was raised
     assert max(rec.trajectory_s) <= 2 * 1.5 * DEG + 1e-9  # the 2 warm-up steps, nothing more
 
 

@@ -19,10 +19,32 @@ import numpy as np
 
 
 def update_predictor(predictor, xs: np.ndarray, ns: np.ndarray, err: np.ndarray | None):
-    """One predictor update; the step's pose uncertainty goes to the predictors that model it."""
-    if getattr(predictor, "needs_err", False):
-        return predictor.update(xs, ns, err=err)
-    return predictor.update(xs, ns)
+    """One predictor update; the step's pose uncertainty goes to the predictors that model it. An exception
+    leaves with a note of where it was raised (file:line in function), which survives pickling out of the fit
+    process and reaches the loop's `predictor_error` event."""
+    try:
+        if getattr(predictor, "needs_err", False):
+            return predictor.update(xs, ns, err=err)
+        return predictor.update(xs, ns)
+    except Exception as exc:
+        exc.add_note(raised_at(exc))
+        raise
+
+
+def raised_at(exc: BaseException) -> str:
+    """`at FILE:LINE in FUNCTION` of the innermost frame of `exc`'s traceback (the package's path relative)."""
+    import traceback
+
+    frames = traceback.extract_tb(exc.__traceback__)
+    if not frames:
+        return "at (no traceback)"
+    f = frames[-1]
+    path = f.filename
+    for root in ("/supervisor/", "/sim/", "/drivers/"):
+        if root in path:
+            path = root[1:] + path.split(root, 1)[1]
+            break
+    return f"at {path}:{f.lineno} in {f.name}"
 
 
 class InlineFits:

@@ -440,7 +440,8 @@ class SupervisorLoop:
             self._evidence = max(self._evidence, float(xs.max()))
         pred, exc = done
         if exc is not None:  # a predictor bug must stop the robot, not crash the loop
-            self.events.emit(now, "predictor_error", error=repr(exc))
+            self.events.emit(now, "predictor_error", error=repr(exc), step=step,
+                             where="; ".join(getattr(exc, "__notes__", ())))
             pred = None
         fit = getattr(pred, "fit", None)
         self.record.fits.append({"t": now, "step": step, "theta_max": float(xs.max()) if len(xs) else math.nan,
