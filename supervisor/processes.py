@@ -17,7 +17,11 @@ PR_SET_PDEATHSIG = 1
 def die_with_parent() -> None:
     """Linux: this (child) process gets SIGKILL when its parent dies, even by SIGKILL (no orphans).
 
-    Also a process pool's `initializer`. Elsewhere (no prctl) it does nothing."""
+    Also a process pool's `initializer`. Elsewhere (no prctl) it does nothing.
+
+    The "parent" is the thread that started the process, not the parent process (prctl(2)): the child is
+    killed when that thread ends. Start such processes from a thread that lives as long as they must (the
+    main thread, the daemon's setup thread), never from a thread made for one piece of work."""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL))
