@@ -140,6 +140,23 @@ def test_watchdog_and_heartbeat_go_on_through_a_model_build_and_a_runs_setup(cel
     assert _max_gap(plc.arrivals, b0, t_end) < CONSUMER_TIMEOUT_S
 
 
+def test_a_failing_freshness_check_costs_beats_never_the_wait_on_setup_work(cell, monkeypatch):
+    """The main thread's wait on setup work goes on whatever its liveness checks raise: no beat then (fail
+    safe), an event, and the work's own result."""
+    d, _, _ = cell
+
+    def broken(since=None):
+        raise OSError("robot link: connection reset")
+
+    monkeypatch.setattr(d, "fresh", broken)
+    before = sum(e["kind"] == "beat_failed" for e in d.events.events)
+    reply = d.handle({"cmd": "stage", "name": d.sup.stage.name})  # queued; the main loop keeps it alive
+    monkeypatch.undo()
+    assert reply["ok"], reply
+    failed = [e for e in d.events.events if e["kind"] == "beat_failed"]
+    assert len(failed) > before and failed[-1]["error"] == "OSError: robot link: connection reset"
+
+
 def test_setup_work_past_its_budget_stops_the_beats_and_is_reported(cell):
     """Setup work that hangs is not covered for: after the budget the beats stop, so systemd and the PLC see a
     hung daemon; the overrun is logged and a setup move under way would be asked to brake. (Last in this file:

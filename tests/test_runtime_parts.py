@@ -433,3 +433,24 @@ def test_an_arc_the_present_configuration_cannot_complete_starts_from_another_of
     finally:
         sup.close()
         drivers.close()
+
+
+def test_the_event_file_has_the_events_in_the_order_of_the_log_whichever_threads_emit_them(tmp_path):
+    log = EventLog(tmp_path / "events.jsonl", queue_lines=100_000)  # room for all: nothing dropped
+    start = threading.Barrier(3)
+
+    def emit(name: str) -> None:
+        start.wait()
+        for i in range(20000):
+            log.emit(float(i), name, i=i)
+
+    threads = [threading.Thread(target=emit, args=(name,)) for name in ("a", "b", "c")]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert log.flush(30.0)
+    log.close()
+    written = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    assert len(written) == len(log.events) == 60000 and log.dropped == 0
+    assert [(e["kind"], e["i"]) for e in written] == [(e["kind"], e["i"]) for e in log.events]

@@ -117,14 +117,16 @@ class CanLink:
         return True
 
     def heartbeat(self, now: float) -> None:
-        if self.channel is not None:
-            self.channel.heartbeat(now)
+        ch = self.channel  # read once: an arm's reopen on the setup thread may close it meanwhile
+        if ch is not None:
+            ch.heartbeat(now)
         if self.external_latched:  # a motion started after an external stop brakes at once
             self.d.sup.request_stop("plc", halt_reason="external_stop")
 
     def on_brake(self, now: float, reason: str) -> None:
-        if self.channel is not None:
-            self.channel.stop(now, reason)
+        ch = self.channel  # read once (see heartbeat)
+        if ch is not None:
+            ch.stop(now, reason)
 
     def observer(self):
         if self.channel is None:

@@ -50,6 +50,7 @@ from supervisor.can.link import CanLink  # CAN side channel (issue 12)
 IDLE_PERIOD = 0.02  # s: the idle loop's period (freshness checks, watchdog, queued requests)
 STATE_MAX_AGE = 0.1  # s: a robot state older than this at rest is not fresh
 REQUEST_TIMEOUT = 120.0  # s: how long a queued request may take (a model build moves the arm)
+MAX_BEAT_FAILURE_EVENTS = 20  # a beat that keeps failing is logged this many times, then counted only
 SETUP_BUDGET = REQUEST_TIMEOUT  # s: setup work kept alive (_alive_while) at most this long; then the beats stop
 SHUTDOWN_RECORDING_WAIT = 0.8  # s: [issue-10rec] a session's index at SIGTERM (the exit is due within 2 s)
 
@@ -147,6 +148,7 @@ class Daemon:
         self._hung = threading.Event()  # tests: make the idle loop hang (the watchdog must stop)
         self._setup = SetupThread()  # setup work, kept alive by the main thread (_alive_while)
         self.setup_budget = SETUP_BUDGET
+        self._beat_failures = 0
         self._pending_run = False
         self._next_plan = None
         self._stops = 0  # stop requests so far (under _lock): an arm or a run being set up checks none came
@@ -163,13 +165,15 @@ class Daemon:
         self.events.emit(self._now(), kind, **fields)
 
     def _set_state(self, state: State, why: str = "") -> None:
+        # all of it under one lock: the main thread, a socket's stop and the PLC's receive thread change the state,
+        # and the event log, the heartbeat's state and systemd's STATUS must see the changes in the same order
         with self._changed:
             old, self.state = self.state, state
             self._changed.notify_all()
-        if old is not state:
-            self._log("state", state=state.value, previous=old.value, why=why)
-        self.can.state_changed()  # CAN side channel (issue 12): the heartbeat's state
-        self.notifier.status(self.status_line())
+            if old is not state:
+                self._log("state", state=state.value, previous=old.value, why=why)
+            self.can.state_changed()  # CAN side channel (issue 12): the heartbeat's state
+            self.notifier.status(self.status_line())
 
     def status_line(self) -> str:
         fault = f", fault {self.fault}" if self.fault else ""
@@ -495,11 +499,16 @@ class Daemon:
     def _beat(self) -> None:
         """The idle loop's liveness: after its freshness checks pass, the systemd watchdog ping and the CAN
         heartbeat (each sent when due). Nothing while the test hook hangs the loop."""
-        if self._hung.is_set() or self.fresh():
-            return
-        now = self._now()
-        self.notifier.watchdog(now)
-        self.can.heartbeat(now)  # CAN side channel (issue 12): the heartbeat at rest
+        try:
+            if self._hung.is_set() or self.fresh():
+                return
+            now = self._now()
+            self.notifier.watchdog(now)
+            self.can.heartbeat(now)  # CAN side channel (issue 12): the heartbeat at rest
+        except Exception as exc:  # noqa: BLE001 - no beat then (fail safe), and the idle loop goes on
+            self._beat_failures += 1
+            if self._beat_failures <= MAX_BEAT_FAILURE_EVENTS:
+                self._log("beat_failed", error=f"{type(exc).__name__}: {exc}", failures=self._beat_failures)
 
     def _alive_while(self, what: str, work: Callable[[], Any]) -> Any:
         """`work()` (a request, a run's start or summary: setup work with the arm at rest or in a checked setup

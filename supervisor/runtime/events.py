@@ -64,13 +64,17 @@ class EventLog:
     def emit(self, t: float, kind: str, **fields: Any) -> dict[str, Any]:
         """Record one event; never blocks on the disk and never raises for it."""
         ev = {"t": float(t), "kind": kind, **{k: _plain(v) for k, v in fields.items()}}
-        with self._lock:
+        line = None if self._writer is None else json.dumps(ev, sort_keys=True)
+        full = False
+        with self._lock:  # the file gets the events in the order of the list, whichever threads emit them
             self.events.append(ev)
-        if self._writer is not None:
-            try:
-                self._queue.put_nowait(json.dumps(ev, sort_keys=True))
-            except queue.Full:
-                self._drop("event queue full (the disk is not keeping up)")
+            if line is not None:
+                try:
+                    self._queue.put_nowait(line)
+                except queue.Full:
+                    full = True
+        if full:
+            self._drop("event queue full (the disk is not keeping up)")
         return ev
 
     def _drop(self, reason: str) -> None:
