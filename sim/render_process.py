@@ -10,6 +10,7 @@ goes over a pipe, the image comes back through shared memory.
 from __future__ import annotations
 
 import multiprocessing as mp
+import threading
 from multiprocessing import shared_memory
 
 import numpy as np
@@ -80,6 +81,7 @@ class RenderProcess:
         self._proc.start()
         child.close()
         self._closed = False
+        self._lock = threading.Lock()  # one exchange at a time; close() frees the pipe and memory after it
         # A new interpreter imports numpy/OpenCV and builds the scene's textures: seconds. Wait here, once,
         # so the first frame is not mistaken for a stalled camera.
         if not self._conn.poll(start_timeout) or self._conn.recv()[0] != "ready":
@@ -90,14 +92,17 @@ class RenderProcess:
         if self._closed:
             raise DriverError("the render process is closed")
         T = np.array(T_base_cam, float)
-        try:
-            self._conn.send((T, int(frame_index), int(noise_seed)))
-            status, a, b = self._conn.recv()
-        except (EOFError, OSError) as exc:
-            raise DriverError(f"the render process died: {exc}") from exc
-        if status != "ok":
-            raise DriverError(f"rendering failed in the render process: {a}")
-        img = np.ndarray((self.intrinsics.height, self.intrinsics.width), np.uint8, buffer=self._shm.buf).copy()
+        with self._lock:
+            if self._closed:
+                raise DriverError("the render process is closed")
+            try:
+                self._conn.send((T, int(frame_index), int(noise_seed)))
+                status, a, b = self._conn.recv()
+            except (EOFError, OSError) as exc:
+                raise DriverError(f"the render process died: {exc}") from exc
+            if status != "ok":
+                raise DriverError(f"rendering failed in the render process: {a}")
+            img = np.ndarray((self.intrinsics.height, self.intrinsics.width), np.uint8, buffer=self._shm.buf).copy()
         return RenderedFrame(img, a, T, int(frame_index), int(noise_seed), tuple(b))
 
     def close(self) -> None:
@@ -113,6 +118,14 @@ class RenderProcess:
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(1.0)
-        self._conn.close()
-        self._shm.close()
-        self._shm.unlink()
+        # a render under way (the capture thread's) ends now that the child has: its pipe reads EOF. Only then
+        # are the pipe and the memory it copies from freed (a copy from unmapped memory would crash the process,
+        # and memory still exported cannot be closed: it would leak).
+        if not self._lock.acquire(timeout=5.0):
+            return  # a render that does not end: leave the pipe and the memory to the process's exit
+        try:
+            self._conn.close()
+            self._shm.close()
+            self._shm.unlink()
+        finally:
+            self._lock.release()

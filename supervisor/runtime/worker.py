@@ -258,7 +258,7 @@ class ThreadWorker:
                 res = localizer.localize(job.image, hint)
                 with self._refine_lock:
                     self._refinement.observe(job, res)
-                self.completed += 1
+                    self.completed += 1  # counted under the lock: the pool's threads all count here
                 self._done.append(JobResult(job, res, self.clock.now()))
             except BaseException as exc:  # noqa: BLE001 - reported to the loop, which faults
                 self._error = exc
