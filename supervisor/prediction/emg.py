@@ -154,6 +154,12 @@ def initial_guesses(x: np.ndarray, n: np.ndarray, bounds: Bounds = Bounds()) -> 
     return out
 
 
+# fit units (deg, mm): samples closer than this are at one x. Frames at rest at one position differ by float
+# noise (4e-16 rad seen: the angle computed from each frame's robot state); a "decay" over such a spread is a
+# slope of 1e8 per degree, whose fits overflow (a tail fit's EMG form had alpha = exp(-13575) = 0).
+X_SAME = 1e-6
+
+
 def sample_problem(x: np.ndarray, n: np.ndarray) -> str | None:
     """Why these samples cannot carry a 3-parameter decay model (None if they can)."""
     if x.shape != n.shape:
@@ -162,7 +168,7 @@ def sample_problem(x: np.ndarray, n: np.ndarray) -> str | None:
         return f"{len(x)} samples; the 3-parameter model needs at least 3"
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(n))):
         return "non-finite samples (NaN or inf)"
-    if len(np.unique(x)) < 2:
+    if float(np.ptp(x)) <= X_SAME:
         return "all samples at the same x: the decay is unobservable"
     if np.ptp(n) == 0:
         return "constant n_i: no decay to model"

@@ -106,7 +106,7 @@ class TailFit:
         mu = bounds.mu[0]
         # log f = log alpha - log K + 1/(2K^2) - (x - mu)/K  (log_ndtr term ~ 0 far beyond the peak)
         log_alpha = self.a + math.log(K) - 1.0 / (2.0 * K * K) - mu / K
-        return (math.exp(min(log_alpha, 700.0)), K, mu)
+        return (float(np.clip(math.exp(min(log_alpha, 700.0)), *bounds.alpha)), K, mu)
 
 
 def fit_tail(x: np.ndarray, n: np.ndarray) -> TailFit | str:
