@@ -87,7 +87,6 @@ def test_fr3_kinematics_share_the_panda_model_with_their_own_limits():
     assert np.array_equal(fr3.dq_max, FR3.dq_max) and np.array_equal(fr3.ddq_max, FR3.ddq_max)
     assert np.array_equal(panda.q_max, np.minimum(panda.urdf_q_max, PANDA.q_max))
     assert DATASHEET_Q_MAX is PANDA.q_max
-    assert fr3.clone().arm == "fr3"
     assert fr3.within_limits(np.r_[Q_READY[:5], 4.0, Q_READY[6]]) and not panda.within_limits(
         np.r_[Q_READY[:5], 4.0, Q_READY[6]])
     with pytest.raises(ValueError, match="unknown arm 'ur5'"):

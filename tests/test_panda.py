@@ -163,12 +163,6 @@ def test_reach_bound_is_conservative(kin):
     assert max(d) < kin._reach["camera"]
 
 
-def test_clone_shares_the_model_not_the_data(kin):
-    other = kin.clone()
-    assert other.model is kin.model and other.data is not kin.data
-    assert np.array_equal(other.fk(kin.q_ready, "camera"), kin.fk(kin.q_ready, "camera"))
-
-
 def test_unknown_and_unconfigured_frames(kin):
     with pytest.raises(ValueError, match="unknown frame"):
         kin.fk(kin.q_ready, "elbow")

@@ -2,9 +2,9 @@
 
 The model comes from example-robot-data's `panda.urdf` (kinematics only, no
 meshes), with the two finger joints locked, leaving the 7 arm joints. As in
-Pinocchio, the model is immutable and shared; each `PandaKinematics` owns its
-own scratch `Data`, so use one instance per thread (`clone()` makes another
-that shares the model).
+Pinocchio, the model is immutable and shared; the scratch `Data` is one per
+thread (`data`), so threads sharing one `PandaKinematics` never read each
+other's poses.
 
 Frames: `flange` is `panda_link8` (the flange of joint 7, 0.107 m along its
 axis); `camera` and `tcp` are fixed in the flange frame by `T_flange_cam`
@@ -260,13 +260,6 @@ class PandaKinematics:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self._local = threading.local()
-
-    def clone(self) -> PandaKinematics:
-        """Another instance with the same model and its own scratch data."""
-        other = object.__new__(PandaKinematics)
-        other.__dict__.update(self.__dict__)
-        other._local = threading.local()
-        return other
 
     def within_limits(self, q: np.ndarray, tol: float = 0.0) -> bool:
         """True if `q` is 7 finite angles inside [q_min - tol, q_max + tol]."""
