@@ -7,7 +7,7 @@ kills the daemon) and far over a PLC consumer's 100 ms. Now they run on the daem
 main thread goes on with the idle loop's checks and liveness, for at most a budget.
 
 One daemon in this process on the default config (sim robot, sim camera, real clock), its main loop (`serve`)
-on a thread of the test's; systemd stands in as a NOTIFY_SOCKET listener (WATCHDOG_USEC 1 s), the PLC as a
+on a thread of the test's; systemd stands in as a NOTIFY_SOCKET listener (WATCHDOG_USEC 2 s), the PLC as a
 heartbeat consumer on python-can's virtual bus."""
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from supervisor.daemon.notify import Notifier
 from supervisor.daemon.service import Daemon
 
 CHANNEL = "daemon-liveness"
-WATCHDOG_S = 1.0  # WATCHDOG_USEC: systemd kills a service that does not ping within this
+WATCHDOG_S = 2.0  # WATCHDOG_USEC as the shipped unit's WatchdogSec=2: systemd kills a service silent this long
 # The PLC's consumer timeout for this test: 5x the shipped 100 ms, so that a loaded CI machine's ordinary idle
 # loop cannot trip it, and still 10x shorter than the pause a model build made.
 CONSUMER_TIMEOUT_S = 0.5
@@ -163,21 +163,22 @@ def test_setup_work_past_its_budget_stops_the_beats_and_is_reported(cell):
     the PLC's consumer stays tripped.)"""
     d, notify, plc = cell
     assert plc.mon.trip is None
-    d.setup_budget, d.stall = 0.3, 2.0
+    d.setup_budget, d.stall = 0.3, 3.0
     try:
         reply, t0, t1 = _timed(d, {"cmd": "stage", "name": d.sup.stage.name})
     finally:
         d.setup_budget, d.stall = 3600.0, None
     assert reply["ok"], reply
-    assert t1 - t0 >= 2.0
+    assert t1 - t0 >= 3.0
     time.sleep(0.3)
     overrun = [e for e in d.events.events if e["kind"] == "setup_overrun"]
     assert [(e["what"], e["budget_s"]) for e in overrun] == [("stage", 0.3)]
-    stalled = t0 + 2.0 - 0.1  # before the stall ends (the main loop beats again as soon as it has)
+    stalled = t0 + 3.0 - 0.1  # before the stall ends (the main loop beats again as soon as it has)
     pings = [t for t, m in notify.messages if m.get("WATCHDOG") == "1" and t0 <= t <= stalled]
     beats = [t for t in plc.arrivals if t0 <= t <= stalled]
     print(f"\nstalled {t1 - t0:.2f} s with a 0.3 s budget: last watchdog ping {max(pings, default=t0) - t0:.2f} s, "
           f"last heartbeat {max(beats, default=t0) - t0:.2f} s into it; PLC: {plc.mon.trip}")
-    assert beats and max(beats) - t0 < 0.3 + 0.2  # beating until the budget (plus one idle period, scheduling)
-    assert max(pings, default=t0) - t0 < 0.3 + 0.2
+    # beating until the budget, then nothing (1 s: the budget, an idle period and a loaded machine's scheduling)
+    assert beats and max(beats) - t0 < 1.0
+    assert max(pings, default=t0) - t0 < 1.0
     assert plc.mon.trip is not None and t0 < plc.mon.trip.t < t1  # the PLC saw the hang while it lasted

@@ -11,12 +11,12 @@ rest, an idle loop that checks the robot state and the camera are fresh before e
 watchdog ping and CAN heartbeat. Requests arrive on the control socket's threads; `status`, `stop` and
 `wait` are answered there at once (`stop` is always accepted: it brakes the gated run or a setup move,
 cancels a run accepted but not yet moving, and disarms), everything else is queued to the main thread,
-which refuses what the current state does not allow. Work that takes longer than a heartbeat period
-(a model build and its setup moves, a run's setup moves and arc planning, a run's start and summary)
-runs on a helper thread while the main thread goes on with the idle loop's checks and liveness
-(`_alive_while`), for at most SETUP_BUDGET: systemd's watchdog (WatchdogSec=2) and the PLC's heartbeat
-consumer (100 ms) see a daemon that lives through a model build, and one that hangs in it. SIGTERM/SIGINT brake a moving arm, then the daemon
-flushes its logs and exits 0; SIGHUP reloads the config when idle.
+which refuses what the current state does not allow. A request's work (a model build and its setup
+moves, a run's setup moves and arc planning) and a run's start and summary run on the daemon's setup
+thread while the main thread goes on with the idle loop's checks and beats (`_alive_while`), for at
+most SETUP_BUDGET: systemd's watchdog (WatchdogSec=2) and the PLC's heartbeat consumer (100 ms) see a
+daemon that lives through a model build, and one that hangs in it. SIGTERM/SIGINT brake a moving arm,
+then the daemon flushes its logs and exits 0; SIGHUP reloads the config when idle.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ import queue
 import signal
 import threading
 import time
+from collections.abc import Callable
 from concurrent import futures
 from concurrent.futures import Future
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
