@@ -14,6 +14,7 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -29,6 +30,7 @@ from daemon_harness import DaemonProc  # noqa: E402
 HOST = "127.0.0.81"
 ROOT = Path(__file__).resolve().parents[1]
 FRAME_RATE_HZ = 10
+WATCHDOG_S = 2.0  # WATCHDOG_USEC given to the daemon, as the shipped unit's WatchdogSec=2
 TRACKING_DEG = 0.01  # how far the reported arm may pass a commanded stop (its tracking error), deg of arc
 GATE_HALTS = ("boundary", "hard_limit", "consistency", "no_model", "end_of_path")
 # explore with a 250 ms robot-state gap, for the gated-arc test: with the shipped 20 ms, franky-sim's state
@@ -70,7 +72,10 @@ class Rig:
         self.server = FciServer(HOST)
         # 10 frames/s: on a 2-core machine franky-sim's 1 kHz physics takes half a core and the renderer
         # most of another at 30 frames/s, which left the localization processes seconds behind
-        self.daemon = DaemonProc(tmp, config=franka_config(tmp, HOST, FRAME_RATE_HZ))
+        # the shipped unit's watchdog period (WatchdogSec=2)
+        self.daemon = DaemonProc(tmp, {"WATCHDOG_USEC": str(int(WATCHDOG_S * 1e6))},
+                                 config=franka_config(tmp, HOST, FRAME_RATE_HZ))
+        self.model_build: tuple[float, float] | None = None  # (start, end), monotonic
 
     def ctl(self, *args: str, timeout: float = 200.0):
         return self.daemon.ctl(*args, timeout=timeout)
@@ -125,11 +130,23 @@ def rig(tmp_path_factory):
     r = Rig(tmp_path_factory.mktemp("franka-daemon"))
     try:
         assert r.daemon.notify.wait_for("READY", "1"), (r.tmp / "daemon.out").read_text()
+        t0 = time.monotonic()
         code, reply = r.ctl("model", "build")
+        r.model_build = (t0, time.monotonic())
         assert code == 0, (reply, (r.tmp / "daemon.out").read_text())
         yield r
     finally:
         r.close()
+
+
+def test_the_watchdog_was_fed_through_the_model_build(rig):
+    """The model build (franky's point-to-point moves, two frames, SIFT) runs on the daemon's setup thread while
+    its main thread keeps the watchdog fed: no pause as long as WatchdogSec (systemd would kill the daemon)."""
+    t0, t1 = rig.model_build
+    pings = [t for t, m in rig.daemon.notify.messages if m.get("WATCHDOG") == "1" and t0 <= t <= t1]
+    longest = max(np.diff([t0, *pings, t1]))
+    print(f"\nmodel build {t1 - t0:.2f} s on franky-sim: {len(pings)} watchdog pings, longest pause {longest:.2f} s")
+    assert longest < WATCHDOG_S
 
 
 def test_a_gated_arc_on_franky_sim_halts_within_the_allowance_on_the_reported_trajectory(rig):
