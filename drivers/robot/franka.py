@@ -142,7 +142,7 @@ class FrankaRobot(Robot):
     """
 
     # every call to the robot takes the driver's lock (`_io`) itself: callers need no lock of their own, and a
-    # point-to-point move (`move_to`) leaves the state readable between its polls (LockedRobot.move_to)
+    # point-to-point move (`move_to`) leaves the state readable between its polls (LockedRobot passes it through unlocked)
     serializes_itself = True
 
     def __init__(

@@ -89,20 +89,16 @@ class LockedRobot:
         with self._lock:
             self.inner.close()
 
-    def move_to(self, *args, **kwargs):
-        """The driver's own point-to-point move (a setup move: seconds). A driver that serializes its calls
-        itself (`serializes_itself`: franka takes its own lock for each call to the robot) moves without this
-        lock, so the robot state stays readable while the arm moves: the daemon's freshness checks and the sim
-        camera rendering from the reported joints (held for the move, it stopped both: 3.2 s pauses of the
-        watchdog pings in a franky-sim model build). Any other driver's move holds the lock."""
-        if getattr(self.inner, "serializes_itself", False):
-            return self.inner.move_to(*args, **kwargs)
-        with self._lock:
-            return self.inner.move_to(*args, **kwargs)
-
     def __getattr__(self, name: str):  # driver extras (recover, reconnect, ...): the same lock
         attr = getattr(self.inner, name)
         if not callable(attr):
+            return attr
+        if name == "move_to" and getattr(self.inner, "serializes_itself", False):
+            # The driver's own point-to-point move (a setup move: seconds). A driver that serializes its calls
+            # itself (franka takes its own lock for each call to the robot) moves without this lock, so the robot
+            # state stays readable while the arm moves: the daemon's freshness checks and the sim camera rendering
+            # from the reported joints (held for the move, it stopped both: 3.2 s pauses of the watchdog pings in
+            # a franky-sim model build). Any other driver's move holds the lock.
             return attr
 
         def locked(*args, **kwargs):
