@@ -89,8 +89,6 @@ class RenderProcess:
             raise DriverError(f"the render process did not start within {start_timeout:.0f} s")
 
     def render(self, T_base_cam: np.ndarray, frame_index: int = 0, noise_seed: int = 0) -> RenderedFrame:
-        if self._closed:
-            raise DriverError("the render process is closed")
         T = np.array(T_base_cam, float)
         with self._lock:
             if self._closed:

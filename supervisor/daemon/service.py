@@ -502,13 +502,17 @@ class Daemon:
         try:
             if self._hung.is_set() or self.fresh():
                 return
-            now = self._now()
-            self.notifier.watchdog(now)
-            self.can.heartbeat(now)  # CAN side channel (issue 12): the heartbeat at rest
+            self._ping(self._now())
         except Exception as exc:  # noqa: BLE001 - no beat then (fail safe), and the idle loop goes on
             self._beat_failures += 1
             if self._beat_failures <= MAX_BEAT_FAILURE_EVENTS:
                 self._log("beat_failed", error=f"{type(exc).__name__}: {exc}", failures=self._beat_failures)
+
+    def _ping(self, now: float) -> None:
+        """The systemd watchdog ping and the CAN heartbeat (issue 12), each sent when due: from the loop's fresh
+        ticks while moving, from the idle loop after its freshness checks at rest."""
+        self.notifier.watchdog(now)
+        self.can.heartbeat(now)
 
     def _alive_while(self, what: str, work: Callable[[], Any]) -> Any:
         """`work()` (a request, a run's start or summary: setup work with the arm at rest or in a checked setup
@@ -543,10 +547,9 @@ class Daemon:
         with self._changed:
             self._changed.notify_all()
 
-        def heartbeat(now: float) -> None:
+        def heartbeat(now: float) -> None:  # from the loop's fresh ticks
             if not self._hung.is_set():
-                self.notifier.watchdog(now)
-                self.can.heartbeat(now)  # CAN side channel (issue 12): from the loop's fresh ticks
+                self._ping(now)
 
         try:  # [issue-10rec] (a recorder's start waits for the last session's end)
             recorder = self._alive_while("run_start", lambda: self._start_recording(plan))
