@@ -34,20 +34,22 @@ def config_with(tmp: Path, extra: str, name: str = "cfg.yaml", replace: dict[str
     return p
 
 
-def lenient_timing(tmp: Path, name: str = "lenient.yaml", budget: int = 50, extra: str = "") -> Path:
+def lenient_timing(tmp: Path, name: str = "lenient.yaml", budget: int = 50, extra: str = "",
+                   replace: dict[str, str] | None = None) -> Path:
     """The default config with every stage's overrun budget at `budget` (shipped: 3), frame timeout 1 s (200 ms)
     and localization timeout 5 s (1 s). For the tests of what the daemon does while the arm moves (stop,
     SIGTERM, a gated run): on this shared 2-core VM the sim camera's renderer and a localization process
     compete for the cores, and a loaded machine trips the shipped limits by itself now and then (a render
     slowed past 200 ms, 3 late ticks in a row): a correct latched halt, but nothing left moving to test. The
     shipped limits are tested at loop level (tests/test_loop_failsafe.py) and by the daemon tests that use
-    the default config as shipped. `extra`: YAML appended (a `can:` section)."""
+    the default config as shipped. `extra`: YAML appended (a `can:` section); `replace`: more text replaced."""
     text = DEFAULT_CONFIG.read_text()
     for key in ("    pose_gap_ms: 20", "    frame_timeout_ms: 200", "    localization_timeout_ms: 1000"):
         assert text.count(key) == 4, f"one {key.strip()} per stage"
     return config_with(tmp, extra, name, {"    pose_gap_ms: 20": f"    pose_gap_ms: 20\n    overrun_budget: {budget}",
                                         "    frame_timeout_ms: 200": "    frame_timeout_ms: 1000",
-                                        "    localization_timeout_ms: 1000": "    localization_timeout_ms: 5000"})
+                                        "    localization_timeout_ms: 1000": "    localization_timeout_ms: 5000",
+                                        **(replace or {})})
 
 
 class Notify:
