@@ -524,16 +524,15 @@ class Daemon:
         budget = self.setup_budget
         t_end = time.monotonic() + budget
         overrun = False
-        while not futures.wait([fut], timeout=IDLE_PERIOD).done:
-            if overrun:
-                continue
-            if time.monotonic() > t_end:
+        while True:  # a beat first (each is sent only when due): the gated loop that ended may have beaten last
+            if not overrun and time.monotonic() > t_end:
                 overrun = True
                 self._log("setup_overrun", what=what, budget_s=budget)
                 self.sup.request_stop(f"{what} took over {budget:g} s")
-                continue
-            self._beat()
-        return fut.result()
+            if not overrun:
+                self._beat()
+            if futures.wait([fut], timeout=IDLE_PERIOD).done:
+                return fut.result()
 
     def _execute_run(self) -> None:
         with self._lock:  # atomic with stop(): the run is cancelled, or a stop from now on is kept for it

@@ -590,9 +590,10 @@ class Supervisor:
             if d.realtime:
                 rt = realtime_thread_setup()
                 self.events.emit(d.clock.now(), "realtime", **{k: v for k, v in rt.items() if k[0] != "_"})
-                # The cyclic garbage collector stops every thread for tens of ms on a large heap: collect
-                # now, at rest, and not while the arm moves (the loop's garbage is freed by refcounting).
-                gc.collect()
+                # The cyclic garbage collector stops every thread for tens of ms on a large heap: paused while
+                # the arm moves (the loop's garbage is freed by refcounting), the heap frozen (an explicit
+                # collection skips it). No collection here either: its pause (about 40 ms) stopped the
+                # daemon's beats too, just before the loop's first tick beats again.
                 gc.freeze()
                 gc.disable()
             try:
