@@ -276,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ledger", type=Path, default=LEDGER)
     sub = ap.add_subparsers(dest="cmd", required=True)
-    sub.add_parser("tally", help="each setting's incursions, arcs and the rate's 95% upper bound")
+    sub.add_parser("tally", help="each setting's incursions, arcs and the rate's 95%% upper bound")
     a = sub.add_parser("add", help="append a finished dryrun_trials.py run")
     a.add_argument("run", type=Path)
     a.add_argument("--label", required=True)
