@@ -3,12 +3,14 @@ pings, at rest, through a model build and through a gated run.
 
 An in-process daemon (sim robot and camera as configured, realtime) with a CAN side channel on python-can's
 `virtual` bus and a NOTIFY_SOCKET listener standing in for systemd (WATCHDOG_USEC 1 s: pings due every 0.5 s).
-Phases: `rest` (armed, idle, `--rest` s), `model build`, `run` (request to summary) and `rest` again. Per
-phase: heartbeats, median / p99 / max gap, the max against the consumer's timeout (`supervisor can monitor`,
-default 100 ms) as a ratio, and the longest watchdog gap against WATCHDOG_USEC. `--idle-period-ms` sets the
-idle loop's period for the comparison (shipped: supervisor/daemon/service.py IDLE_PERIOD).
+Phases: `model build`, `rest` (armed, idle, `--rest` s), then `--runs` times a `run` (request to summary) and
+a `rest` (halted). Per phase: heartbeats, median / p99 / max gap, the max against the consumer's timeout
+(`supervisor can monitor`, default 100 ms) as a ratio, and the longest watchdog gap against WATCHDOG_USEC; per
+run the gaps spanning the loop's first tick, its halt and the summary's end. `--idle-period-ms` sets the idle
+loop's period for a comparison (shipped: supervisor/daemon/service.py IDLE_PERIOD). Writes heartbeat.json and
+heartbeat.png (every gap over time, the phases shaded).
 
-    .venv/bin/python benchmarks/bench_heartbeat.py [--rest 20] [--idle-period-ms 20] [-o bench-out/heartbeat]
+    .venv/bin/python benchmarks/bench_heartbeat.py [--rest 20] [--runs 1] [--idle-period-ms 20] [-o bench-out/heartbeat]
 
 Ratios and medians only: no pass/fail. Say what else ran on the machine when you quote the numbers.
 """
@@ -89,6 +91,7 @@ def main() -> int:
     ap.add_argument("--rest", type=float, default=20.0, help="seconds at rest before and after (default 20)")
     ap.add_argument("--idle-period-ms", type=float, default=None, help="the idle loop's period (default: shipped)")
     ap.add_argument("--azimuth-deg", type=float, default=90.0)
+    ap.add_argument("--runs", type=int, default=1, help="gated runs, each followed by a rest (default 1)")
     ap.add_argument("-o", "--out", default="bench-out/heartbeat")
     a = ap.parse_args()
     if a.idle_period_ms is not None:
@@ -132,8 +135,11 @@ def main() -> int:
         phase("model build", lambda: req(cmd="model", action="build"))
         req(cmd="arm")
         phase("rest (armed)", lambda: time.sleep(a.rest))
-        phase("run", run)
-        phase("rest (halted)", lambda: time.sleep(a.rest))
+        for i in range(a.runs):
+            if i:
+                req(cmd="rearm")
+            phase("run" if a.runs == 1 else f"run {i + 1}", run)
+            phase("rest (halted)", lambda: time.sleep(a.rest))
     finally:
         d.request_shutdown("benchmark done")
         server.join(60)
