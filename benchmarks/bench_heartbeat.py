@@ -165,16 +165,14 @@ def main() -> int:
               f"{fmt(row['max_over_timeout'], '11.2f')} {fmt(row['watchdog_max_over_usec'], '17.2f')}")
     ev = events(d, phases)
     t_first = phases[0][1] if phases else 0.0
-    around = {}
-    for kind in ("start", "halted", "run_ended"):  # the loop's first tick, its halt, the summary's end
-        at = [e["t_s"] + t_first for e in ev if e["kind"] == kind]
-        around[kind] = [gap_around(listener.beats, t) for t in at]
-        print(f"gap spanning `{kind}`: " + ", ".join(f"{g:.1f} ms" for g in around[kind] if g is not None))
-    halted = [e["t_s"] + t_first for e in ev if e["kind"] == "halted"]
-    ends = [e["t_s"] + t_first for e in ev if e["kind"] == "run_ended"]
-    after_halt = [float(1000 * g.max()) if len(g := gaps(listener.beats, a, b + 0.05)) else None
-                  for a, b in zip(halted, ends)]  # the loop's end, the summary on the setup thread
-    print("longest gap from the halt to the run's end: " + ", ".join(f"{g:.1f} ms" for g in after_halt if g))
+    # the loop's first tick, its halt, the summary's end: when each happened (monotonic), and the gap spanning it
+    at = {kind: [e["t_s"] + t_first for e in ev if e["kind"] == kind] for kind in ("start", "halted", "run_ended")}
+    around = {kind: [gap_around(listener.beats, t) for t in ts] for kind, ts in at.items()}
+    for kind, spans in around.items():
+        print(f"gap spanning `{kind}`: " + ", ".join(f"{s:.1f} ms" for s in spans if s is not None))
+    windows = [gaps(listener.beats, t_halt, t_end + 0.05) for t_halt, t_end in zip(at["halted"], at["run_ended"])]
+    after_halt = [float(1000 * w.max()) if len(w) else None for w in windows]  # the loop's end, the summary
+    print("longest gap from the halt to the run's end: " + ", ".join(f"{s:.1f} ms" for s in after_halt if s))
     report = {"idle_period_ms": 1000 * service.IDLE_PERIOD, "heartbeat_period_ms": 1000 * can_cfg.heartbeat_period,
               "consumer_timeout_ms": 1000 * timeout, "halt_reasons": halts, "phases": rows,
               "longest_gaps": longest(listener.beats, phases), "gap_spanning_ms": around,
