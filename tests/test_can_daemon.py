@@ -60,6 +60,20 @@ def _moving(d: DaemonProc, settle: float) -> bool:
     return d.req({"cmd": "status"})["state"] == "moving"
 
 
+def _run_until_moving(d: DaemonProc, check=None) -> str | None:
+    """Runs until one is seen moving (at most ATTEMPTS), `check()` after each start; returns the halt reason of
+    the last run that had ended by itself before (None if the first was moving)."""
+    last_halt = None
+    for _ in range(ATTEMPTS):
+        moving = _moving(d, 0.5)
+        if check is not None:
+            check()
+        if moving:
+            break
+        last_halt = d.req({"cmd": "wait", "timeout": 60}).get("summary", {}).get("halt_reason")
+    return last_halt
+
+
 @pytest.mark.slow
 def test_external_stop_latches_and_sigkill_trips_the_monitor_in_another_process(tmp_path):
     # timing limits relaxed (lenient_timing): the arm must be moving when the kill comes, and a loaded machine
@@ -86,13 +100,7 @@ def test_external_stop_latches_and_sigkill_trips_the_monitor_in_another_process(
         assert any(e["kind"] == "external_stop" for e in d.events())
 
         # 2. SIGKILL mid-motion: nothing can be caught; the consumer's timeout must notice
-        moving, last_halt = False, None
-        for _ in range(ATTEMPTS):
-            moving = _moving(d, 0.5)
-            if moving:
-                break
-            last_halt = d.req({"cmd": "wait", "timeout": 60}).get("summary", {}).get("halt_reason")
-        state = d.req({"cmd": "status"})["state"]
+        last_halt = _run_until_moving(d)
         # the monitor starts now: what it checks here is the kill (the heartbeat through a model build and a
         # run's setup is tests/test_daemon_liveness.py's, with a timeout a loaded machine's idle loop never trips);
         # only if the run ends before the monitor is up does it see another run's setup
@@ -104,14 +112,14 @@ def test_external_stop_latches_and_sigkill_trips_the_monitor_in_another_process(
             time.sleep(0.02)
         time.sleep(0.2)
         assert mon.poll() is None, mon_out.read_text()
-        state = d.req({"cmd": "status"})["state"]  # what the kill interrupts
-        for _ in range(ATTEMPTS if state != "moving" else 0):  # the run ended meanwhile: another, monitored
+        if d.req({"cmd": "status"})["state"] != "moving":  # the run ended meanwhile: another, monitored
             last_halt = d.req({"cmd": "wait", "timeout": 60}).get("summary", {}).get("halt_reason")
-            _moving(d, 0.5)
-            assert mon.poll() is None, f"the heartbeat lapsed while the daemon was alive:\n{mon_out.read_text()}"
-            state = d.req({"cmd": "status"})["state"]
-            if state == "moving":
-                break
+
+            def monitor_alive() -> None:
+                assert mon.poll() is None, f"the heartbeat lapsed while the daemon was alive:\n{mon_out.read_text()}"
+
+            last_halt = _run_until_moving(d, check=monitor_alive) or last_halt
+        state = d.req({"cmd": "status"})["state"]  # what the kill interrupts
         d.note_children()
         t_kill = time.monotonic()
         os.kill(d.proc.pid, signal.SIGKILL)
