@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, replace
 
@@ -179,7 +180,11 @@ class MisbehavingRobot(Robot):
 
 
 class MisbehavingCamera(Camera):
-    """Forwards to a real camera; after `after` frames, its grab raises `exc`."""
+    """Forwards to a real camera; after `after` frames, its grab raises a copy of `exc`.
+
+    A copy: the instance a test passes lives as long as the test module's parameters, and a raised exception's
+    traceback holds the loop's frames, so raising it would keep the loop (and its Ruckig objects) alive until the
+    interpreter exits (nanobind then reports them as leaked)."""
 
     def __init__(self, inner: Camera, exc: BaseException, after: int) -> None:
         super().__init__(inner.intrinsics, inner.clock)
@@ -188,7 +193,7 @@ class MisbehavingCamera(Camera):
     def _grab(self, timeout: float) -> RawFrame:
         self.n += 1
         if self.n > self.after:
-            raise self.exc
+            raise copy.copy(self.exc)
         return self.inner._grab(timeout)
 
 
