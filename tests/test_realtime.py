@@ -69,3 +69,24 @@ def test_realtime_setup_lifts_light_threads_and_puts_every_thread_back():
         assert {n: (policy(t), os.sched_getparam(t.native_id).sched_priority) for n, t in threads.items()} == before
     finally:
         stop.set()
+
+
+def test_a_runs_setup_and_restore_leave_the_gil_switch_interval_exactly_as_it_was():
+    """The daemon serves at the tick's own interval (0.2 ms); every run saves and restores it. CPython keeps it
+    in truncated microseconds: restored as read back, it lost a microsecond per run (200 -> 199 -> 198 µs)."""
+    import sys
+
+    from supervisor.runtime.builder import SWITCH_INTERVAL, realtime_thread_restore, realtime_thread_setup, \
+        set_switch_interval
+
+    before = sys.getswitchinterval()
+    try:
+        for start_us in (200, 199, 1000, 4999):
+            set_switch_interval(start_us / 1e6)
+            for _ in range(5):
+                setup = realtime_thread_setup(helpers=None)
+                assert round(sys.getswitchinterval() * 1e6) == round(SWITCH_INTERVAL * 1e6)
+                realtime_thread_restore(setup)
+                assert round(sys.getswitchinterval() * 1e6) == start_us
+    finally:
+        sys.setswitchinterval(before)

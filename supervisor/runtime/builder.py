@@ -163,6 +163,15 @@ SWITCH_INTERVAL = 2e-4  # s: how long a thread holding the GIL may keep a waitin
 HELPER_PRIORITY = 1  # SCHED_FIFO of the process's other Python threads while the tick runs real-time
 
 
+def set_switch_interval(seconds: float) -> None:
+    """`sys.setswitchinterval` to the nearest whole microsecond. CPython keeps the interval in microseconds,
+    truncated, so a value read back with `getswitchinterval` and set again can lose one each time (200 µs
+    became 199, then 198, over two runs' save and restore)."""
+    import sys
+
+    sys.setswitchinterval((round(seconds * 1e6) + 0.5) / 1e6)
+
+
 def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIORITY) -> dict[str, object]:
     """Prepare the calling thread to run the control tick: a short GIL switch interval (the worker threads
     hand the GIL back within 0.2 ms instead of 5 ms) and, where permitted (root, CAP_SYS_NICE or an
@@ -181,7 +190,7 @@ def realtime_thread_setup(priority: int = 20, helpers: int | None = HELPER_PRIOR
 
     out: dict[str, object] = {"switch_interval_ms": SWITCH_INTERVAL * 1e3, "sched_fifo": False,
                               "_previous": (sys.getswitchinterval(), _current_policy()), "_helpers": []}
-    sys.setswitchinterval(SWITCH_INTERVAL)
+    set_switch_interval(SWITCH_INTERVAL)
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         out["sched_fifo"] = True
@@ -228,10 +237,8 @@ def _current_policy():
 
 def realtime_thread_restore(setup: dict[str, object]) -> None:
     """Undo `realtime_thread_setup` for the calling thread and the helper threads (the run is over)."""
-    import sys
-
     interval, policy = setup["_previous"]  # type: ignore[misc]
-    sys.setswitchinterval(interval)
+    set_switch_interval(interval)
     for tid, (pol, prio) in setup.get("_helpers", []):  # type: ignore[union-attr]
         try:
             os.sched_setscheduler(tid, pol, os.sched_param(prio))
