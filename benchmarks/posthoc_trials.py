@@ -24,7 +24,8 @@ go further (a looser limit) cannot be recomputed and are refused.
     python benchmarks/posthoc_trials.py RUN [RUN...] [--clearance-deg 0,0.5] [--worst-frame off,2.5/6.25]
         [--guard off,3/7.5] [--min-ratio off,0.3] [--loso] [--check LIVE_RUN] [-o report.json]
 
-Every combination of the lists is recomputed ("off": the run's own setting). `--loso` also chooses among them
+Every combination of the lists is recomputed ("off": the run's own setting), per run and, given several runs,
+pooled over all of them (a setting's totals across seeds). `--loso` also chooses among them
 by leave-one-scene-out over all the runs' arcs (per held-out scene: the fewest incursions on the other scenes,
 then the highest usage) and reports the held-out totals: numbers for a choice, on arcs it did not see.
 Continuous trials in a run (dryrun_trials.py runs both modes by default) are left out. Reports, never passes or
@@ -173,6 +174,18 @@ def totals(rows: dict[str, dict]) -> dict:
             "approximate_judgements": sum(not r["judge_exact"] for r in rows.values())}
 
 
+def pooled(rows: list[dict]) -> dict:
+    """`totals` over several runs' recomputed rows (each named `run/trial`; a run named twice counts once per row)."""
+    keyed: dict[str, dict] = {}
+    for r in rows:
+        key, n = r["trial"], 1
+        while key in keyed:  # two runs of the same directory name (from different places)
+            n += 1
+            key = f"{r['trial']} ({n})"
+        keyed[key] = r
+    return totals(keyed)
+
+
 def leave_one_scene_out(table: dict[Change, list[dict]]) -> dict:
     """Choose a change by leave-one-scene-out: per scene, the change with the fewest incursions and then the
     highest mean usage on the other scenes' arcs (every run), applied to that scene's arcs; the held-out totals,
@@ -279,6 +292,15 @@ def main(argv: list[str] | None = None) -> int:
                       f"{t['halts_moved']} halts moved"
                       + (f", {t['approximate_judgements']} of them stopped sooner by a rule (judged with the "
                          "run's oracle; approximate)" if t["approximate_judgements"] else ""))
+        if len(a.runs) > 1:
+            report["pooled"] = []
+            for ch in changes:
+                t = pooled(table[ch])
+                report["pooled"].append({"change": ch.label(), **t})
+                print(f"all {len(a.runs)} runs, {ch.label()}: {t['trials']} trials, {len(t['incursions'])} incursions, "
+                      f"usage {100 * t['mean_envelope_usage']:.2f}% (coarse judge {t['coarse_incursions']}; strictly "
+                      f"read {'n/a' if t['strict_incursions'] is None else t['strict_incursions']}), "
+                      f"{t['halts_moved']} halts moved")
         if a.loso:
             cv = report["leave_one_scene_out"] = leave_one_scene_out(table)
             c = cv["cross_validated"]

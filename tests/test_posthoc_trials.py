@@ -168,3 +168,21 @@ def test_a_run_with_the_gate_read_at_every_frame_cannot_be_recomputed_for_anothe
     assert mod.main([str(r), "--min-ratio", "0.3"]) == 2
     assert "inlier_ratio_frames 5" in capsys.readouterr().err
     assert mod.main([str(r), "--clearance-deg", "0.5"]) == 0  # a last-step clearance moves no reading
+
+
+def test_several_runs_are_also_totalled_per_setting(run, tmp_path, capsys):
+    """A registered candidate is judged over fresh seeds: each setting's incursions and usage over every run."""
+    mod = _load()
+    other = tmp_path / "elsewhere" / "run"  # the same directory name as `run`, from another place
+    _trial(other, "cliff_az000_stop_and_go", 30.0, 31.0, [28.5, 30.0], False, readings=QUIET + [(0.3, 0.6, 0.45)])
+    out = tmp_path / "report.json"
+    assert mod.main([str(run), str(other), "--clearance-deg", "0,0.5", "-o", str(out)]) == 0
+    pooled = {p["change"]: p for p in json.loads(out.read_text())["pooled"]}
+    plain, short = pooled[mod.Change().label()], pooled[mod.Change(0.5).label()]
+    assert plain["trials"] == short["trials"] == 4  # three arcs of `run`, one of the other (continuous left out)
+    assert len(plain["incursions"]) == 1  # the first run's cliff, not the other's, which halted before it
+    assert short["incursions"] == []  # 31.2 - 0.5 = 30.7 < 31.0
+    usage = [30.0 / 31.0, 30.15 / 33.0, 30.0 / 32.0, 31.2 / 31.0]  # halts as run
+    assert plain["mean_envelope_usage"] == pytest.approx(sum(usage) / 4)
+    assert f"all 2 runs, {mod.Change().label()}: 4 trials, 1 incursions" in capsys.readouterr().out
+    assert mod.main([str(run), "-o", str(out)]) == 0 and "pooled" not in json.loads(out.read_text())
