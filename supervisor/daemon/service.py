@@ -469,7 +469,7 @@ class Daemon:
         The GIL's switch interval is the control tick's (SWITCH_INTERVAL, 0.2 ms) for as long as the daemon
         serves, at rest too, not the interpreter's 5 ms: while the setup thread computes a run's summary (FK
         over every executed state) the idle loop beats only when it gets the GIL back. On a loaded 2-core
-        machine the longest heartbeat gap from the halt to the run's end, in runs that ended at the boundary,
+        machine the longest heartbeat gap from the halt to the run's end, in runs that ended at a boundary,
         was 50-86 ms (median 63, 7 runs) at 5 ms and 28-47 ms (median 35, 13 runs) at 0.2 ms (session 35,
         benchmarks/bench_heartbeat.py)."""
         switch = sys.getswitchinterval()
