@@ -171,6 +171,71 @@ def test_cpu_starvation_on_the_real_clock_overruns_the_budget_and_stops():
     assert not np.any(rig.sim.state().dq)
 
 
+class _FrozenStateStream:
+    """The controller goes away after `after` commands: the driver keeps returning its last state (franky's
+    cached sample), commands still return."""
+
+    def __init__(self, inner, after: int) -> None:
+        self.inner, self.after, self.n, self._frozen = inner, after, 0, None
+
+    @property
+    def control_period(self) -> float:
+        return self.inner.control_period
+
+    def state(self):
+        if self._frozen is not None:
+            return self._frozen
+        st = self.inner.state()
+        if self.n >= self.after:
+            self._frozen = st
+        return st
+
+    def command(self, q) -> None:
+        self.n += 1
+        self.inner.command(q)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def _real_clock_rig(robot_wrap=None):
+    clock = MonotonicClock()
+    # a gap of 150 ms: the machine's own load does not reach it, the injected causes below do
+    st = stage(hard_limit=6 * DEG, overrun_budget=1000, pose_gap=0.15, frame_timeout=5.0)
+    return build_loop(st, clock=clock, pacer=TickPacer(clock, 0.001, st.overrun_budget), camera=PlainCamera(clock),
+                      robot_wrap=robot_wrap)
+
+
+def test_a_state_gap_says_when_the_loop_itself_was_held():
+    """The loop reads the robot once a tick, so a tick held past the gap is a state gap too; the fault says
+    it was the supervisor's own tick that came late."""
+    rig = _real_clock_rig()
+    orig, count = rig.loop.follower.tick, [0]
+
+    def held(*a, **k):
+        count[0] += 1
+        if count[0] == 300:
+            time.sleep(0.5)  # this computer does not run the supervisor for half a second
+        return orig(*a, **k)
+
+    rig.loop.follower.tick = held
+    rec = rig.loop.run(max_time=30.0)
+    assert rec.halt_reason == "fault:state_gap", (rec.halt_reason, _faults(rig))
+    fault = rig.events.of_kind("fault")[0]
+    assert fault["tick_interval_ms"] > 150, fault
+    assert "the supervisor itself was held" in fault["detail"], fault
+    assert not np.any(rig.sim.state().dq)
+
+
+def test_a_state_gap_says_when_the_loop_ran_on_time_and_the_robot_went_quiet():
+    rig = _real_clock_rig(robot_wrap=lambda r: _FrozenStateStream(r, after=300))
+    rec = rig.loop.run(max_time=30.0)
+    assert rec.halt_reason == "fault:state_gap", (rec.halt_reason, _faults(rig))
+    fault = rig.events.of_kind("fault")[0]
+    assert "ms old" in fault["detail"] and "the loop ran on time" in fault["detail"], fault
+    assert fault["tick_interval_ms"] < 150, fault
+
+
 def test_hooks_see_the_run_and_a_failing_hook_never_disturbs_it():
     beats, brakes = [], []
 

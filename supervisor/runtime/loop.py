@@ -248,6 +248,7 @@ class SupervisorLoop:
         self._recent_ratios: deque[float] = deque(maxlen=max(self.stage.inlier_ratio_frames, 1))
         self._last_frame_t: float | None = None
         self._last_state_t: float | None = None
+        self._last_tick_t: float | None = None  # when the previous tick began (clock time)
         self._last_ok: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target)
         self._phase = Phase.MOVING
         self._target_s = 0.0
@@ -538,13 +539,23 @@ class SupervisorLoop:
         return True
 
     # -- faults and halts ----------------------------------------------------------------
-    def _fault(self, now: float, kind: str, detail: str) -> None:
+    def _fault(self, now: float, kind: str, detail: str, **fields: Any) -> None:
         """One fault event per kind and run (a condition that persists while braking is not logged each
         tick), then the latched brake."""
         if kind not in self._faults_seen:
             self._faults_seen.add(kind)
-            self.events.emit(now, "fault", fault=kind, detail=detail, s_deg=math.degrees(self.follower.state.s))
+            self.events.emit(now, "fault", fault=kind, detail=detail, s_deg=math.degrees(self.follower.state.s),
+                             **fields)
         self._halt(now, f"fault:{kind}")
+
+    def _tick_interval_note(self, interval: float) -> str:
+        """Whose gap a state gap is: the loop reads the robot's state once a tick, so a tick held past the
+        stage's gap (this computer did not run the supervisor) shows as a state gap as surely as a robot that
+        stopped reporting."""
+        if interval > self.stage.pose_gap + 1e-9:
+            return (f"this tick began {interval * 1000:.1f} ms after the previous one: the supervisor itself "
+                    f"was held on this computer")
+        return f"the loop ran on time (this tick {interval * 1000:.1f} ms after the previous one)"
 
     def _halt(self, now: float, reason: str) -> None:
         if self._phase in (Phase.BRAKING, Phase.HALTED):
@@ -605,6 +616,7 @@ class SupervisorLoop:
             self._robot_lost(now, *lost.args)
             return self.record
         t_start = self.clock.now()
+        self._last_tick_t = t_start
         self.history.add(st.t, st.q)
         self._last_state_t = st.t
         self._record_allowance(t_start, self._stop_point())
@@ -652,13 +664,17 @@ class SupervisorLoop:
             self._halt(now, self._stop_request)
         if now - t_start > max_time:
             self._fault(now, "timeout", f"run exceeded {max_time} s")
+        interval = now - (self._last_tick_t if self._last_tick_t is not None else now)
+        self._last_tick_t = now
         st = self._read_state(now)
         if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
-            self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state")
+            self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state; "
+                        + self._tick_interval_note(interval), tick_interval_ms=round(interval * 1e3, 3))
         elif self._real_clock and now - st.t > self.stage.pose_gap + 1e-9:  # a frozen state stream (a controller
             # gone: franky's cached sample); on the real clock only (simulated time advances in camera waits)
             self._fault(now, "state_gap", f"the newest robot state is {(now - st.t) * 1000:.1f} ms old "
-                                          f"(no new state since t={st.t:.4f})")
+                                          f"(no new state since t={st.t:.4f}); " + self._tick_interval_note(interval),
+                        tick_interval_ms=round(interval * 1e3, 3))
         fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9 and not (
             self._real_clock and now - st.t > self.stage.pose_gap + 1e-9)
         if st.t > self._last_state_t:
