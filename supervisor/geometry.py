@@ -100,7 +100,9 @@ def validate_T(T: np.ndarray, name: str = "transform", tol: float = 1e-6) -> np.
     if not np.all(np.isfinite(T)):
         raise InvalidTransform(f"{name}: contains NaN or inf")
     R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > tol or np.linalg.det(R) < 0:
+    # an orthonormal matrix's entries lie in [-1, 1]: checked first, so that huge finite entries are refused
+    # without overflowing R^T R
+    if np.abs(R).max() > 1.0 + tol or np.abs(R.T @ R - np.eye(3)).max() > tol or np.linalg.det(R) < 0:
         raise InvalidTransform(f"{name}: rotation is not orthonormal (tolerance {tol})")
     if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > tol:
         raise InvalidTransform(f"{name}: last row must be [0, 0, 0, 1]")
