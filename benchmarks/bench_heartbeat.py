@@ -6,7 +6,8 @@ An in-process daemon (sim robot and camera as configured, realtime) with a CAN s
 Phases: `model build`, `rest` (armed, idle, `--rest` s), then `--runs` times a `run` (request to summary) and
 a `rest` (halted). Per phase: heartbeats, median / p99 / max gap, the max against the consumer's timeout
 (`supervisor can monitor`, default 100 ms) as a ratio, and the longest watchdog gap against WATCHDOG_USEC; per
-run the gaps spanning the loop's first tick, its halt and the summary's end. `--idle-period-ms` sets the idle
+run the gaps spanning the loop's first tick, its halt and the summary's end, and each fault's detail (a
+`state_gap` says whether the tick itself was held). `--idle-period-ms` sets the idle
 loop's period for a comparison (shipped: supervisor/daemon/service.py IDLE_PERIOD). Writes heartbeat.json and
 heartbeat.png (every gap over time, the phases shaded).
 
@@ -173,6 +174,9 @@ def main() -> int:
     windows = [gaps(listener.beats, t_halt, t_end + 0.05) for t_halt, t_end in zip(at["halted"], at["run_ended"])]
     after_halt = [float(1000 * w.max()) if len(w) else None for w in windows]  # the loop's end, the summary
     print("longest gap from the halt to the run's end: " + ", ".join(f"{s:.1f} ms" for s in after_halt if s))
+    for e in ev:
+        if e["kind"] == "fault":
+            print(f"fault at {e['t_s']:.3f} s ({e.get('s_deg', float('nan')):.2f} deg): {e['fault']}: {e['detail']}")
     report = {"idle_period_ms": 1000 * service.IDLE_PERIOD, "heartbeat_period_ms": 1000 * can_cfg.heartbeat_period,
               "consumer_timeout_ms": 1000 * timeout, "halt_reasons": halts, "phases": rows,
               "longest_gaps": longest(listener.beats, phases), "gap_spanning_ms": around,
@@ -208,7 +212,9 @@ def events(d: service.Daemon, phases: list[tuple[str, float, float]]) -> list[di
     if not phases:
         return []
     t0 = phases[0][1]
-    return [{"kind": e["kind"], "t_s": round(e["t"] - t0, 3)} for e in list(d.events.events) if e["t"] >= t0]
+    keep = ("fault", "detail", "tick_interval_ms", "s_deg")  # a fault says which, why, and whose gap it was
+    return [{"kind": e["kind"], "t_s": round(e["t"] - t0, 3), **{k: e[k] for k in keep if k in e}}
+            for e in list(d.events.events) if e["t"] >= t0]
 
 
 def plot(beats: list[float], phases: list[tuple[str, float, float]], timeout: float, path: Path) -> None:
