@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import enum
 import math
+import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -249,6 +250,7 @@ class SupervisorLoop:
         self._last_frame_t: float | None = None
         self._last_state_t: float | None = None
         self._last_tick_t: float | None = None  # when the previous tick began (clock time)
+        self._last_tick_cpu = 0.0  # the tick thread's CPU time then (time.thread_time; read on the real clock only)
         self._last_ok: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target)
         self._phase = Phase.MOVING
         self._target_s = 0.0
@@ -548,13 +550,20 @@ class SupervisorLoop:
                              **fields)
         self._halt(now, f"fault:{kind}")
 
-    def _tick_interval_note(self, interval: float) -> str:
+    def _tick_interval_note(self, interval: float, cpu: float | None) -> str:
         """Whose gap a state gap is: the loop reads the robot's state once a tick, so a tick held past the
         stage's gap (this computer did not run the supervisor) shows as a state gap as surely as a robot that
-        stopped reporting."""
+        stopped reporting. On the real clock, how much of the interval the tick thread spent on the CPU says how
+        it was held: kept off the CPU (another task, a lock) or running (long work, or a slow CPU)."""
+        how = "" if cpu is None else (f" (its thread ran {cpu * 1000:.1f} ms on the CPU in that time: "
+                                      + ("kept off the CPU)" if cpu < 0.5 * interval else "running)"))
         if interval > self.stage.pose_gap + 1e-9:
             return (f"this tick began {interval * 1000:.1f} ms after the previous one: the supervisor itself "
-                    f"was held on this computer")
+                    f"was held on this computer{how}")
+        period = float(getattr(self.pacer, "period", self.dt))  # the loop's own period (the pacer's)
+        if interval > 2 * period + 1e-9:
+            return (f"this tick began {interval * 1000:.1f} ms after the previous one, {interval / period:.1f} "
+                    f"tick periods: the loop itself ran late{how}")
         return f"the loop ran on time (this tick {interval * 1000:.1f} ms after the previous one)"
 
     def _halt(self, now: float, reason: str) -> None:
@@ -617,6 +626,7 @@ class SupervisorLoop:
             return self.record
         t_start = self.clock.now()
         self._last_tick_t = t_start
+        self._last_tick_cpu = time.thread_time() if self._real_clock else 0.0
         self.history.add(st.t, st.q)
         self._last_state_t = st.t
         self._record_allowance(t_start, self._stop_point())
@@ -666,15 +676,22 @@ class SupervisorLoop:
             self._fault(now, "timeout", f"run exceeded {max_time} s")
         interval = now - (self._last_tick_t if self._last_tick_t is not None else now)
         self._last_tick_t = now
+        cpu = None
+        if self._real_clock:
+            cpu_now = time.thread_time()
+            cpu, self._last_tick_cpu = cpu_now - self._last_tick_cpu, cpu_now
+        held = {"tick_interval_ms": round(interval * 1e3, 3)}
+        if cpu is not None:
+            held["tick_cpu_ms"] = round(cpu * 1e3, 3)
         st = self._read_state(now)
         if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
             self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state; "
-                        + self._tick_interval_note(interval), tick_interval_ms=round(interval * 1e3, 3))
+                        + self._tick_interval_note(interval, cpu), **held)
         elif self._real_clock and now - st.t > self.stage.pose_gap + 1e-9:  # a frozen state stream (a controller
             # gone: franky's cached sample); on the real clock only (simulated time advances in camera waits)
             self._fault(now, "state_gap", f"the newest robot state is {(now - st.t) * 1000:.1f} ms old "
-                                          f"(no new state since t={st.t:.4f}); " + self._tick_interval_note(interval),
-                        tick_interval_ms=round(interval * 1e3, 3))
+                                          f"(no new state since t={st.t:.4f}); "
+                                          + self._tick_interval_note(interval, cpu), **held)
         fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9 and not (
             self._real_clock and now - st.t > self.stage.pose_gap + 1e-9)
         if st.t > self._last_state_t:
