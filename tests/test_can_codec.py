@@ -64,7 +64,7 @@ def _physical(codec: Codec, name: str, signal: str, value):
 
 
 @pytest.mark.parametrize("name,values,what", [
-    ("heartbeat", {"State": 5, "Stage": 0, "Fault": 0}, "State"),
+    ("heartbeat", {"State": 6, "Stage": 0, "Fault": 0}, "State"),
     ("heartbeat", {"State": "flying", "Stage": 0, "Fault": 0}, "flying"),
     ("heartbeat", {"State": "idle", "Stage": 256, "Fault": 0}, "Stage"),
     ("heartbeat", {"State": "idle", "Stage": 0, "Fault": 2}, "Fault"),
@@ -86,6 +86,30 @@ def test_counter_out_of_range_and_unknown_message_are_refused(codec):
         codec.encode("stop", {"Reason": "gate"}, counter=16)
     with pytest.raises(FrameError, match="unknown message"):
         codec.encode("launch", {})
+
+
+def test_the_heartbeat_states_are_the_dbcs_and_a_cells_dbc_without_setup_is_read_as_such(codec, tmp_path):
+    """Every state the daemon sends has its value in the shipped DBC (`setup`: 5, a setup move); a cell's own
+    DBC from before `setup` still loads, and says it lacks the value (the daemon then keeps the state)."""
+    assert codec.choices("heartbeat", "State") == set(STATES)
+    for state in STATES:
+        fid, data = codec.encode("heartbeat", {"State": state, "Stage": 0, "Fault": 0})
+        assert codec.decode("heartbeat", data)["State"] == state
+    old = tmp_path / "old.dbc"
+    text = Path(codec_dbc()).read_text()
+    assert ' 5 "setup"' in text and "[0|5]" in text
+    old.write_text(text.replace(' 5 "setup"', "").replace("State : 12|4@1+ (1,0) [0|5]", "State : 12|4@1+ (1,0) [0|4]"))
+    old_codec = Codec(old)
+    assert old_codec.choices("heartbeat", "State") == set(STATES) - {"setup"}
+    with pytest.raises(FrameError):
+        old_codec.encode("heartbeat", {"State": "setup", "Stage": 0, "Fault": 0})
+    assert old_codec.choices("heartbeat", "NoSuchSignal") == set()
+
+
+def codec_dbc() -> Path:
+    from supervisor.can.settings import DEFAULT_DBC
+
+    return DEFAULT_DBC
 
 
 def test_stop_reason_codes_cover_the_loop_halt_reasons():

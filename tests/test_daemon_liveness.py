@@ -52,8 +52,10 @@ class _Plc:
     def __init__(self, cfg) -> None:
         self.bus = PythonCanBus("virtual", CHANNEL)
         self.bus.open()
-        self.mon = HeartbeatMonitor(Codec.from_settings(cfg.can), timeout=CONSUMER_TIMEOUT_S)
+        self.codec = Codec.from_settings(cfg.can)
+        self.mon = HeartbeatMonitor(self.codec, timeout=CONSUMER_TIMEOUT_S)
         self.arrivals: list[float] = []
+        self.states: list[tuple[float, str]] = []  # each valid heartbeat's State, as it arrived
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -67,6 +69,7 @@ class _Plc:
                 self.mon.feed(frame)
                 if self.mon.beats > beats:
                     self.arrivals.append(now)
+                    self.states.append((now, str(self.codec.decode("heartbeat", frame.data)["State"])))
             self.mon.check(now)
 
     def close(self) -> None:
@@ -108,6 +111,13 @@ def cell(tmp_path_factory):
     assert sys.getswitchinterval() == switch, "the daemon left its GIL switch interval behind"
 
 
+def _moving_spans(d: Daemon) -> list[tuple[float, float]]:
+    """(start, end) of every gated run in the daemon's event log (monotonic time, as the heartbeats')."""
+    starts = [e["t"] for e in d.events.events if e["kind"] == "start"]
+    ends = [e["t"] for e in d.events.events if e["kind"] == "halted"]
+    return list(zip(starts, ends))
+
+
 def _timed(d: Daemon, req: dict) -> tuple[dict, float, float]:
     t0 = time.monotonic()
     reply = d.handle(req)
@@ -142,6 +152,26 @@ def test_watchdog_and_heartbeat_go_on_through_a_model_build_and_a_runs_setup(cel
     assert _max_gap(pings, b0, t_end) < WATCHDOG_S, "systemd would have killed the daemon"
     assert plc.mon.trip is None, plc.mon.trip
     assert _max_gap(plc.arrivals, b0, t_end) < CONSUMER_TIMEOUT_S
+
+    # the PLC sees the setup moves as `setup`, not as the state around them (the arm moves then): the model
+    # build's (from idle, back to idle) and the second run's return to the model view (from armed, then moving)
+    def states(t0: float, t1: float) -> list[str]:
+        seen = [s for t, s in plc.states if t0 <= t <= t1]
+        return [s for i, s in enumerate(seen) if i == 0 or s != seen[i - 1]]
+
+    build_states = states(b0, b1 + 0.1)  # its moves to the two views and back, at rest (idle) between them
+    if "armed" in build_states:  # the test's `arm` came within the window's last 0.1 s
+        build_states = build_states[:build_states.index("armed")]
+    assert build_states.count("setup") >= 2 and set(build_states) == {"idle", "setup"}, build_states
+    assert build_states[-1] == "idle", build_states
+    second_run = states(s0, t_end)
+    assert "setup" in second_run, second_run
+    i = second_run.index("setup")
+    assert second_run[i + 1:i + 3] == ["armed", "moving"], second_run
+    assert not any(s == "setup" and d0 <= t <= d1 for t, s in plc.states for d0, d1 in _moving_spans(d)), \
+        "a gated run was reported as a setup move"
+    statuses = [m.get("STATUS", "") for _, m in notify.messages]
+    assert any(", setup move," in s for s in statuses), statuses
 
 
 def test_a_failing_freshness_check_costs_beats_never_the_wait_on_setup_work(cell, monkeypatch):

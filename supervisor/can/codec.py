@@ -19,7 +19,8 @@ from supervisor.errors import ConfigError, SupervisorError
 
 DBC_NAMES = {"heartbeat": "HEARTBEAT", "stop": "STOP", "external_stop": "EXTERNAL_STOP", "status": "STATUS"}
 E2E_SIGNALS = ("Crc", "AliveCounter")
-STATES = ("idle", "armed", "moving", "halted", "fault")
+# `setup`: a setup move under way (a model build's views, a run's move to its start) outside a gated run
+STATES = ("idle", "armed", "moving", "halted", "fault", "setup")
 STOP_REASONS = ("other", "end_of_path", "boundary", "gate", "stop_request", "external_stop", "fault", "consistency",
                 "error_bound", "inlier_ratio")
 
@@ -61,6 +62,13 @@ class Codec:
         self.data_ids = dict(data_ids)
         self.by_id = {fid: key for key, fid in self.frames.items()}
         self._counters = dict.fromkeys(MESSAGES, 0)
+
+    def choices(self, name: str, signal: str) -> set[str]:
+        """The named values a signal of a message has in this DBC (empty when it has none or no such signal)."""
+        for s in self.messages[name].signals:
+            if s.name == signal and s.choices:
+                return {str(v) for v in s.choices.values()}
+        return set()
 
     def signals(self, name: str) -> list[str]:
         """The payload signals of a message (without Crc and AliveCounter)."""

@@ -89,8 +89,11 @@ class CanLink:
             return
         names = list(self.d.cfg.stages)
         stage = self.d.sup.stage.name
-        ch.set_state(self.d.state.value, names.index(stage) if stage in names else 255,
-                     fault=bool(self.d.fault) or bool(ch.faults))
+        state = self.d.state.value
+        # a setup move outside a gated run is `setup` (a cell's own DBC without that value keeps the state)
+        if self.d.setup_moving and state != "moving" and "setup" in ch.codec.choices("heartbeat", "State"):
+            state = "setup"
+        ch.set_state(state, names.index(stage) if stage in names else 255, fault=bool(self.d.fault) or bool(ch.faults))
 
     def arm_problems(self, reopen: bool = True) -> list[str]:
         """Why arming must be refused now ([] when the side channel is fine or not configured). When

@@ -138,6 +138,8 @@ class Daemon:
         self.events = EventLog(self.log_dir / "events.jsonl")
         self.drivers = open_drivers(self.cfg, realtime=realtime)
         self.sup = Supervisor(self.cfg, self.drivers, self.events)
+        self.setup_moving = False  # a setup move under way (the CAN heartbeat's `setup`, the status)
+        self.sup.on_setup_move = self._setup_move_changed
         self.state = State.IDLE
         self.fault: str | None = None
         self.last_summary: dict[str, Any] | None = None
@@ -176,9 +178,17 @@ class Daemon:
             self.can.state_changed()  # CAN side channel (issue 12): the heartbeat's state
             self.notifier.status(self.status_line())
 
+    def _setup_move_changed(self, active: bool) -> None:
+        """A setup move started or ended (the setup thread): the heartbeat's state and systemd's STATUS follow."""
+        with self._changed:
+            self.setup_moving = active
+            self.can.state_changed()
+            self.notifier.status(self.status_line())
+
     def status_line(self) -> str:
         fault = f", fault {self.fault}" if self.fault else ""
-        return f"{self.state.value}, stage {self.sup.stage.name}{fault}"
+        setup = ", setup move" if self.setup_moving else ""
+        return f"{self.state.value}{setup}, stage {self.sup.stage.name}{fault}"
 
     # -- checks -----------------------------------------------------------------------------
     def fresh(self, since: float | None = None) -> list[str]:
@@ -254,7 +264,8 @@ class Daemon:
 
     def status(self) -> dict[str, Any]:
         pacer = self.sup.last_pacer
-        return {"state": self.state.value, "stage": self.sup.stage.name, "fault": self.fault,
+        return {"state": self.state.value, "setup_move": self.setup_moving, "stage": self.sup.stage.name,
+                "fault": self.fault,
                 "model": None if self.sup.model is None else {"features": self.sup.model.n_features,
                                                               "frame": self.sup.model.frame},
                 "config_sha256": self.cfg.sha256, "config": str(self.cfg.file), "runs": self.runs,

@@ -20,6 +20,7 @@ import gc
 import math
 import os
 import threading
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -326,6 +327,8 @@ class Supervisor:
         # inside stoppable(): setup moves brake on request_stop (depth: nested stoppable blocks)
         self._setup_depth = 0
         self._setup_stop = threading.Event()
+        # told True when a setup move starts and False when it ends (the daemon: the CAN heartbeat's `setup`)
+        self.on_setup_move: Callable[[bool], None] | None = None
 
     # -- configuration ---------------------------------------------------------------------
     @property
@@ -369,7 +372,21 @@ class Supervisor:
         with self.stoppable():
             if self._setup_stop.is_set():
                 raise MotionStopped("a stop came before this setup move; the arm did not move")
-            move(self._setup_stop.is_set)
+            self._tell_setup_move(True)
+            try:
+                move(self._setup_stop.is_set)
+            finally:
+                self._tell_setup_move(False)
+
+    def _tell_setup_move(self, active: bool) -> None:
+        """`on_setup_move(active)`; its failure is logged and never stops or starts a move."""
+        if self.on_setup_move is None:
+            return
+        try:
+            self.on_setup_move(active)
+        except Exception as exc:  # noqa: BLE001 - an observer's failure is not the move's
+            self.events.emit(self.drivers.clock.now(), "observer_failed", hook="on_setup_move",
+                             detail=f"{type(exc).__name__}: {exc}")
 
     def move_camera_to(self, T_base_cam: np.ndarray) -> None:
         """A planned, checked joint move to rest with the camera at `T_base_cam` (setup motions). A driver
