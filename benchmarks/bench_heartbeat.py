@@ -212,7 +212,7 @@ def events(d: service.Daemon, phases: list[tuple[str, float, float]]) -> list[di
     if not phases:
         return []
     t0 = phases[0][1]
-    keep = ("fault", "detail", "tick_interval_ms", "s_deg")  # a fault says which, why, and whose gap it was
+    keep = ("fault", "detail", "tick_interval_ms", "tick_cpu_ms", "s_deg")  # a fault says which, why, and whose gap it was
     return [{"kind": e["kind"], "t_s": round(e["t"] - t0, 3), **{k: e[k] for k in keep if k in e}}
             for e in list(d.events.events) if e["t"] >= t0]
 

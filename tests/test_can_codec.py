@@ -9,6 +9,7 @@ import pytest
 
 from supervisor.can.codec import STATES, STOP_REASONS, Codec, FrameError, stop_reason_code
 from supervisor.can.e2e import Checker, crc8_sae_j1850, frame_crc
+from supervisor.can.settings import DEFAULT_DBC
 from supervisor.config import load_config
 from supervisor.errors import ConfigError
 from supervisor.paths import DEFAULT_CONFIG
@@ -93,10 +94,10 @@ def test_the_heartbeat_states_are_the_dbcs_and_a_cells_dbc_without_setup_is_read
     DBC from before `setup` still loads, and says it lacks the value (the daemon then keeps the state)."""
     assert codec.choices("heartbeat", "State") == set(STATES)
     for state in STATES:
-        fid, data = codec.encode("heartbeat", {"State": state, "Stage": 0, "Fault": 0})
+        _, data = codec.encode("heartbeat", {"State": state, "Stage": 0, "Fault": 0})
         assert codec.decode("heartbeat", data)["State"] == state
     old = tmp_path / "old.dbc"
-    text = Path(codec_dbc()).read_text()
+    text = DEFAULT_DBC.read_text()
     assert ' 5 "setup"' in text and "[0|5]" in text
     old.write_text(text.replace(' 5 "setup"', "").replace("State : 12|4@1+ (1,0) [0|5]", "State : 12|4@1+ (1,0) [0|4]"))
     old_codec = Codec(old)
@@ -104,12 +105,6 @@ def test_the_heartbeat_states_are_the_dbcs_and_a_cells_dbc_without_setup_is_read
     with pytest.raises(FrameError):
         old_codec.encode("heartbeat", {"State": "setup", "Stage": 0, "Fault": 0})
     assert old_codec.choices("heartbeat", "NoSuchSignal") == set()
-
-
-def codec_dbc() -> Path:
-    from supervisor.can.settings import DEFAULT_DBC
-
-    return DEFAULT_DBC
 
 
 def test_stop_reason_codes_cover_the_loop_halt_reasons():

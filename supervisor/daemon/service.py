@@ -175,15 +175,18 @@ class Daemon:
             self._changed.notify_all()
             if old is not state:
                 self._log("state", state=state.value, previous=old.value, why=why)
-            self.can.state_changed()  # CAN side channel (issue 12): the heartbeat's state
-            self.notifier.status(self.status_line())
+            self._announce_state()
 
     def _setup_move_changed(self, active: bool) -> None:
         """A setup move started or ended (the setup thread): the heartbeat's state and systemd's STATUS follow."""
         with self._changed:
             self.setup_moving = active
-            self.can.state_changed()
-            self.notifier.status(self.status_line())
+            self._announce_state()
+
+    def _announce_state(self) -> None:
+        """The heartbeat's state (CAN side channel, issue 12) and systemd's STATUS; under `_changed`."""
+        self.can.state_changed()
+        self.notifier.status(self.status_line())
 
     def status_line(self) -> str:
         fault = f", fault {self.fault}" if self.fault else ""

@@ -249,7 +249,7 @@ class SupervisorLoop:
         self._recent_ratios: deque[float] = deque(maxlen=max(self.stage.inlier_ratio_frames, 1))
         self._last_frame_t: float | None = None
         self._last_state_t: float | None = None
-        self._last_tick_t: float | None = None  # when the previous tick began (clock time)
+        self._last_tick_t = 0.0  # when the previous tick began (clock time; set when the run starts)
         self._last_tick_cpu = 0.0  # the tick thread's CPU time then (time.thread_time; read on the real clock only)
         self._last_ok: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_cam, T_cam_target)
         self._phase = Phase.MOVING
@@ -550,6 +550,13 @@ class SupervisorLoop:
                              **fields)
         self._halt(now, f"fault:{kind}")
 
+    def _state_gap(self, now: float, what: str, interval: float, cpu: float | None) -> None:
+        """The `state_gap` fault: what was missing, whose gap it was, and the tick's interval (and CPU time)."""
+        fields = {"tick_interval_ms": round(interval * 1e3, 3)}
+        if cpu is not None:
+            fields["tick_cpu_ms"] = round(cpu * 1e3, 3)
+        self._fault(now, "state_gap", f"{what}; {self._tick_interval_note(interval, cpu)}", **fields)
+
     def _tick_interval_note(self, interval: float, cpu: float | None) -> str:
         """Whose gap a state gap is: the loop reads the robot's state once a tick, so a tick held past the
         stage's gap (this computer did not run the supervisor) shows as a state gap as surely as a robot that
@@ -674,24 +681,18 @@ class SupervisorLoop:
             self._halt(now, self._stop_request)
         if now - t_start > max_time:
             self._fault(now, "timeout", f"run exceeded {max_time} s")
-        interval = now - (self._last_tick_t if self._last_tick_t is not None else now)
-        self._last_tick_t = now
+        interval, self._last_tick_t = now - self._last_tick_t, now
         cpu = None
         if self._real_clock:
             cpu_now = time.thread_time()
             cpu, self._last_tick_cpu = cpu_now - self._last_tick_cpu, cpu_now
-        held = {"tick_interval_ms": round(interval * 1e3, 3)}
-        if cpu is not None:
-            held["tick_cpu_ms"] = round(cpu * 1e3, 3)
         st = self._read_state(now)
         if st.t - self._last_state_t > self.stage.pose_gap + 1e-9:
-            self._fault(now, "state_gap", f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state; "
-                        + self._tick_interval_note(interval, cpu), **held)
+            self._state_gap(now, f"{(st.t - self._last_state_t) * 1000:.1f} ms without robot state", interval, cpu)
         elif self._real_clock and now - st.t > self.stage.pose_gap + 1e-9:  # a frozen state stream (a controller
             # gone: franky's cached sample); on the real clock only (simulated time advances in camera waits)
-            self._fault(now, "state_gap", f"the newest robot state is {(now - st.t) * 1000:.1f} ms old "
-                                          f"(no new state since t={st.t:.4f}); "
-                                          + self._tick_interval_note(interval, cpu), **held)
+            self._state_gap(now, f"the newest robot state is {(now - st.t) * 1000:.1f} ms old "
+                                 f"(no new state since t={st.t:.4f})", interval, cpu)
         fresh = st.t - self._last_state_t <= self.stage.pose_gap + 1e-9 and not (
             self._real_clock and now - st.t > self.stage.pose_gap + 1e-9)
         if st.t > self._last_state_t:
